@@ -1,0 +1,239 @@
+"""Rigid-body geometry, batched over leading array axes.
+
+Conventions (DESIGN §2), stated once here for the whole package:
+
+* Rotations are 3×3 matrices ``R`` (shape ``(..., 3, 3)``); a pose is a pair
+  ``(R, t)`` mapping child-frame points into the parent frame: ``p_parent = R p + t``.
+* Quaternions, where they appear (file formats, messages), are **scalar-last**
+  ``(x, y, z, w)``, the order of ROS messages, g2o files and scipy.
+* Tangent vectors are ``(δt, δθ)`` with translation first (ROS covariance order
+  x, y, z, rot x, rot y, rot z). A local pose is perturbed by
+  ``t ← t + δt`` and ``R ← R · Exp(δθ)``.
+* The error of a relative measurement ``K = (R_K, t_K)`` between poses ``A`` and ``B`` is
+  ``[t_E; Log(R_E)]`` of ``K⁻¹ (A⁻¹ B)``.
+* Planar poses are 3-D poses with ``z = 0`` and rotation about ``z`` only; their tangent
+  and error coordinates are the subset :data:`PLANAR_DOF` ``= (x, y, yaw)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+#: Indices of (x, y, yaw) in the 6-D tangent / error vector.
+PLANAR_DOF = np.array([0, 1, 5])
+
+_SMALL_ANGLE = 1e-6
+
+
+def hat(v: Array) -> Array:
+    """Skew-symmetric matrices ``[v]×`` of vectors ``v`` with shape ``(..., 3)``."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1] = -v[..., 2]
+    out[..., 0, 2] = v[..., 1]
+    out[..., 1, 0] = v[..., 2]
+    out[..., 1, 2] = -v[..., 0]
+    out[..., 2, 0] = -v[..., 1]
+    out[..., 2, 1] = v[..., 0]
+    return out
+
+
+def so3_exp(w: Array) -> Array:
+    """Rotation matrices ``Exp(w)`` of rotation vectors ``w`` with shape ``(..., 3)``."""
+    w = np.asarray(w, dtype=float)
+    theta2 = np.einsum("...i,...i->...", w, w)
+    theta = np.sqrt(theta2)
+    small = theta < _SMALL_ANGLE
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
+    k = hat(w)
+    eye = np.broadcast_to(np.eye(3), k.shape)
+    return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
+
+
+def so3_log(R: Array) -> Array:
+    """Rotation vectors ``Log(R)`` with norm in ``[0, π]``, shape ``(..., 3)``.
+
+    Accurate near the identity and near angle π, where the trace formula alone loses
+    precision.
+    """
+    R = np.asarray(R, dtype=float)
+    trace = np.einsum("...ii->...", R)
+    cos = np.clip((trace - 1.0) / 2.0, -1.0, 1.0)
+    vee = np.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]],
+        axis=-1,
+    )
+    sin = 0.5 * np.linalg.norm(vee, axis=-1)
+    theta = np.arctan2(sin, cos)
+    small = theta < _SMALL_ANGLE
+    scale = np.where(small, 0.5 + theta**2 / 12.0, theta / (2.0 * np.where(small, 1.0, sin)))
+    out = scale[..., None] * vee
+    near_pi = cos < -0.99
+    if np.any(near_pi):
+        out[near_pi] = _log_near_pi(R[near_pi], theta[near_pi], vee[near_pi])
+    return out
+
+
+def _log_near_pi(R: Array, theta: Array, vee: Array) -> Array:
+    # Near π, sin θ → 0 and the antisymmetric part carries no axis; take the axis from the
+    # symmetric part R + Rᵀ = 2 cos θ I + 2 (1 - cos θ) n nᵀ and its sign from vee.
+    cos = np.cos(theta)
+    sym = (R + np.swapaxes(R, -1, -2)) / 2.0 - cos[:, None, None] * np.eye(3)
+    sym /= (1.0 - cos)[:, None, None]
+    col = np.argmax(np.einsum("nii->ni", sym), axis=-1)
+    axis = sym[np.arange(len(R)), :, col]
+    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+    sign = np.where(np.einsum("ni,ni->n", axis, vee) < 0.0, -1.0, 1.0)
+    return (sign * theta)[:, None] * axis
+
+
+def so3_right_jacobian_inv(w: Array) -> Array:
+    """Inverse right Jacobian of SO(3): ``Log(Exp(w) Exp(δ)) ≈ w + J_r⁻¹(w) δ``."""
+    w = np.asarray(w, dtype=float)
+    theta2 = np.einsum("...i,...i->...", w, w)
+    theta = np.sqrt(theta2)
+    small = theta < 1e-4
+    safe = np.where(small, 1.0, theta)
+    coef = np.where(
+        small,
+        1.0 / 12.0 + theta2 / 720.0,
+        1.0 / safe**2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(np.where(small, 1.0, safe))),
+    )
+    k = hat(w)
+    eye = np.broadcast_to(np.eye(3), k.shape)
+    return eye + 0.5 * k + coef[..., None, None] * (k @ k)
+
+
+def orthonormalize(R: Array) -> Array:
+    """Nearest rotation matrices (polar decomposition through SVD)."""
+    u, _, vt = np.linalg.svd(R)
+    det = np.linalg.det(u @ vt)
+    u[..., :, -1] *= det[..., None]
+    return u @ vt
+
+
+def yaw_to_matrix(yaw: Array) -> Array:
+    """Rotation matrices about ``z`` for angles ``yaw`` (rad), shape ``(..., 3, 3)``."""
+    yaw = np.asarray(yaw, dtype=float)
+    c, s = np.cos(yaw), np.sin(yaw)
+    out = np.zeros(yaw.shape + (3, 3))
+    out[..., 0, 0] = c
+    out[..., 0, 1] = -s
+    out[..., 1, 0] = s
+    out[..., 1, 1] = c
+    out[..., 2, 2] = 1.0
+    return out
+
+
+def matrix_to_yaw(R: Array) -> Array:
+    """Yaw (rad, in ``(-π, π]``) of rotation matrices about ``z``."""
+    R = np.asarray(R, dtype=float)
+    return np.arctan2(R[..., 1, 0], R[..., 0, 0])
+
+
+def wrap_angle(a: Array) -> Array:
+    """Angles wrapped into ``[-π, π)``."""
+    return (np.asarray(a, dtype=float) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def quat_to_matrix(q: Array) -> Array:
+    """Rotation matrices of quaternions ``(x, y, z, w)``; the quaternions are normalized first.
+
+    Raises:
+        ValueError: a quaternion has zero (or non-finite) norm.
+    """
+    q = np.asarray(q, dtype=float)
+    norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    if not np.all(np.isfinite(norm)) or np.any(norm < 1e-12):
+        raise ValueError("quaternion with zero or non-finite norm")
+    x, y, z, w = np.moveaxis(q / norm, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def matrix_to_quat(R: Array) -> Array:
+    """Quaternions ``(x, y, z, w)`` with ``w ≥ 0`` of rotation matrices."""
+    R = np.asarray(R, dtype=float)
+    m = R.reshape(-1, 3, 3)
+    tr = np.einsum("nii->n", m)
+    # Shepperd's method: pick the largest of w, x, y, z to divide by.
+    cand = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], -1)
+    pick = np.argmax(cand, axis=-1)
+    q = np.empty((len(m), 4))
+    for k in range(4):
+        sel = pick == k
+        if not np.any(sel):
+            continue
+        s = m[sel]
+        if k == 0:
+            r = np.sqrt(1.0 + tr[sel]) * 2.0
+            q[sel] = np.stack(
+                [(s[:, 2, 1] - s[:, 1, 2]) / r, (s[:, 0, 2] - s[:, 2, 0]) / r,
+                 (s[:, 1, 0] - s[:, 0, 1]) / r, 0.25 * r], -1)
+        else:
+            i, j, l = k - 1, k % 3, (k + 1) % 3
+            r = np.sqrt(1.0 + s[:, i, i] - s[:, j, j] - s[:, l, l]) * 2.0
+            comp = np.empty((len(s), 4))
+            comp[:, i] = 0.25 * r
+            comp[:, j] = (s[:, j, i] + s[:, i, j]) / r
+            comp[:, l] = (s[:, l, i] + s[:, i, l]) / r
+            comp[:, 3] = (s[:, l, j] - s[:, j, l]) / r
+            q[sel] = comp
+    q *= np.where(q[:, 3:4] < 0.0, -1.0, 1.0)
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    return q.reshape(R.shape[:-2] + (4,))
+
+
+def compose(Ra: Array, ta: Array, Rb: Array, tb: Array) -> tuple[Array, Array]:
+    """``A · B`` for poses ``A = (Ra, ta)`` and ``B = (Rb, tb)``."""
+    return Ra @ Rb, ta + np.einsum("...ij,...j->...i", Ra, tb)
+
+
+def inverse(R: Array, t: Array) -> tuple[Array, Array]:
+    """``A⁻¹`` for a pose ``A = (R, t)``."""
+    Rt = np.swapaxes(R, -1, -2)
+    return Rt, -np.einsum("...ij,...j->...i", Rt, t)
+
+
+def between(Ra: Array, ta: Array, Rb: Array, tb: Array) -> tuple[Array, Array]:
+    """``A⁻¹ · B``: pose ``B`` expressed in the frame of ``A``."""
+    Rat = np.swapaxes(Ra, -1, -2)
+    return Rat @ Rb, np.einsum("...ij,...j->...i", Rat, tb - ta)
+
+
+def relative_error(
+    Ra: Array, ta: Array, Rb: Array, tb: Array, Rk: Array, tk: Array
+) -> Array:
+    """Error ``[t_E; Log(R_E)]`` of ``K⁻¹ (A⁻¹ B)``, shape ``(..., 6)``."""
+    Rab, tab = between(Ra, ta, Rb, tb)
+    Re, te = between(Rk, tk, Rab, tab)
+    return np.concatenate([te, so3_log(Re)], axis=-1)
+
+
+def cumulative_compose(R: Array, t: Array) -> tuple[Array, Array]:
+    """Prefix products ``P_k = T_0 · T_1 · … · T_k`` of a chain of poses (shape ``(n, …)``).
+
+    A Hillis–Steele scan: ``⌈log₂ n⌉`` rounds of batched products instead of ``n`` Python
+    steps, which is what makes long tree paths cheap in numpy.
+    """
+    R = np.array(R, dtype=float)
+    t = np.array(t, dtype=float)
+    step = 1
+    n = len(R)
+    while step < n:
+        R_new, t_new = compose(R[:-step], t[:-step], R[step:], t[step:])
+        R[step:] = R_new
+        t[step:] = t_new
+        step *= 2
+    return R, t
