@@ -138,7 +138,10 @@ def matrix_to_yaw(R: Array) -> Array:
 
 def wrap_angle(a: Array) -> Array:
     """Angles wrapped into ``[-π, π)``."""
-    return (np.asarray(a, dtype=float) + np.pi) % (2.0 * np.pi) - np.pi
+    out = (np.asarray(a, dtype=float) + np.pi) % (2.0 * np.pi) - np.pi
+    # For inputs an ulp or so below -π the remainder rounds up to 2π, giving π; move those
+    # to -π, the same angle inside the documented range.
+    return out - 2.0 * np.pi * (out >= np.pi)
 
 
 def quat_to_matrix(q: Array) -> Array:
@@ -182,13 +185,13 @@ def matrix_to_quat(R: Array) -> Array:
                 [(s[:, 2, 1] - s[:, 1, 2]) / r, (s[:, 0, 2] - s[:, 2, 0]) / r,
                  (s[:, 1, 0] - s[:, 0, 1]) / r, 0.25 * r], -1)
         else:
-            i, j, l = k - 1, k % 3, (k + 1) % 3
-            r = np.sqrt(1.0 + s[:, i, i] - s[:, j, j] - s[:, l, l]) * 2.0
+            i, j, h = k - 1, k % 3, (k + 1) % 3
+            r = np.sqrt(1.0 + s[:, i, i] - s[:, j, j] - s[:, h, h]) * 2.0
             comp = np.empty((len(s), 4))
             comp[:, i] = 0.25 * r
             comp[:, j] = (s[:, j, i] + s[:, i, j]) / r
-            comp[:, l] = (s[:, l, i] + s[:, i, l]) / r
-            comp[:, 3] = (s[:, l, j] - s[:, j, l]) / r
+            comp[:, h] = (s[:, h, i] + s[:, i, h]) / r
+            comp[:, 3] = (s[:, h, j] - s[:, j, h]) / r
             q[sel] = comp
     q *= np.where(q[:, 3:4] < 0.0, -1.0, 1.0)
     q /= np.linalg.norm(q, axis=-1, keepdims=True)

@@ -37,6 +37,8 @@ INFO_EIG_FLOOR = 1e-10
 
 
 class EdgeKind(IntEnum):
+    """What an edge measures (see the module docstring)."""
+
     RELATIVE = 0
     POSITION = 1
     ORIENTATION = 2
@@ -80,10 +82,12 @@ class PoseGraph:
 
     @property
     def num_nodes(self) -> int:
+        """Number of nodes ``N``."""
         return len(self.ids)
 
     @property
     def num_edges(self) -> int:
+        """Number of edges ``M``."""
         return len(self.kind)
 
     @property
@@ -92,6 +96,7 @@ class PoseGraph:
         return geo.PLANAR_DOF if self.planar else np.arange(6)
 
     def copy(self) -> PoseGraph:
+        """A deep copy (every array copied)."""
         return PoseGraph(
             self.planar, self.ids.copy(), self.R.copy(), self.t.copy(), self.kind.copy(),
             self.a.copy(), self.b.copy(), self.meas_R.copy(), self.meas_t.copy(),
@@ -181,10 +186,17 @@ def condition_information(
             bad = sel[np.argmax(top <= 0.0)]
             raise InputError(f"edge {bad}: information matrix has no positive eigenvalue")
         floor = INFO_EIG_FLOOR * top[:, None]
-        low = lam < floor
-        clamped.append(sel[np.any(low, axis=1)])
-        lam = np.maximum(lam, floor)
-        out[np.ix_(sel, rows, rows)] = np.einsum("mij,mj,mkj->mik", vec, lam, vec)
+        hit = np.any(lam < floor, axis=1)
+        clamped.append(sel[hit])
+        # Only clamped matrices are rebuilt from their eigen-decomposition: rebuilding the
+        # others would perturb them in the last bits, and a graph read from a file must
+        # keep exactly the information the file states (round trips are bitwise).
+        out[np.ix_(sel, rows, rows)] = block
+        if np.any(hit):
+            lam_c = np.maximum(lam[hit], floor[hit])
+            out[np.ix_(sel[hit], rows, rows)] = np.einsum(
+                "mij,mj,mkj->mik", vec[hit], lam_c, vec[hit]
+            )
     clamped_idx = np.sort(np.concatenate(clamped)) if clamped else np.zeros(0, np.int64)
     if len(clamped_idx):
         LOG.info("eigen-clamped %d information matrices (floor %.0e × largest eigenvalue)",

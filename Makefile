@@ -1,0 +1,72 @@
+# Developer entry points for h2o_slam. The README's two commands are `make demo` and
+# `make test`; CI runs `make test` through .ci/run.
+
+SHELL := /bin/bash
+.SHELLFLAGS := -eu -o pipefail -c
+.DEFAULT_GOAL := help
+
+VENV := .venv
+PY := $(VENV)/bin/python
+# Evaluated only when the venv has to be created.
+BOOTSTRAP_PYTHON = $(shell command -v python3.11 || command -v python3)
+DEV_STAMP := $(VENV)/.h2o-dev-installed
+BENCH_STAMP := $(VENV)/.h2o-bench-installed
+OUT := out/demo
+
+# DDS stays on this machine: Fast DDS with the loopback-only profile (shared memory + UDP on
+# 127.0.0.1, unicast discovery, no multicast). The profile alone decides; the ROS discovery
+# variables that would override it are removed from the environment of every recipe.
+export RMW_IMPLEMENTATION := rmw_fastrtps_cpp
+export FASTRTPS_DEFAULT_PROFILES_FILE := $(CURDIR)/config/fastdds_localhost.xml
+export FASTDDS_DEFAULT_PROFILES_FILE := $(CURDIR)/config/fastdds_localhost.xml
+unexport ROS_LOCALHOST_ONLY ROS_AUTOMATIC_DISCOVERY_RANGE ROS_STATIC_PEERS
+
+.PHONY: help venv demo test bench clean
+
+help:
+	@echo "make demo   synthetic 400-pose graph -> h2o-solve (offline, 10 passes) -> report JSON"
+	@echo "make test   ruff, mypy and pytest (what CI runs)"
+	@echo "make bench  benchmarks against reference solvers (installs requirements-bench.txt)"
+	@echo "make venv   create/update .venv (reruns when a requirements file or setup.py changes)"
+	@echo "make clean  remove build/, install/, log/ and out/"
+
+venv: $(DEV_STAMP)
+
+$(DEV_STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg
+	@if [ ! -x $(PY) ]; then \
+	  echo "creating $(VENV) with $(BOOTSTRAP_PYTHON)"; \
+	  $(BOOTSTRAP_PYTHON) -m venv $(VENV); \
+	fi
+	$(PY) -m pip install --quiet -r requirements-dev.txt
+	$(PY) -m pip install --quiet -e .
+	@touch $@
+
+$(BENCH_STAMP): $(DEV_STAMP) requirements-bench.txt
+	$(PY) -m pip install --quiet -r requirements-bench.txt
+	@touch $@
+
+demo: venv
+	@mkdir -p $(OUT)
+	$(PY) -m h2o_slam.synthetic $(OUT)/graph.g2o --poses 400 --seed 1
+	$(VENV)/bin/h2o-solve $(OUT)/graph.g2o --output $(OUT)/solved.g2o --mode offline \
+	  --passes 10 --report $(OUT)/report.json > /dev/null
+	@$(PY) -m json.tool $(OUT)/report.json
+	@echo "graph: $(OUT)/graph.g2o  solved: $(OUT)/solved.g2o  report: $(OUT)/report.json"
+
+# Runs all three checks even when one fails, then fails if any did. pytest's exit code 5
+# (no tests collected) is a failure here: a green run must have run tests.
+test: venv
+	@failed=""; \
+	echo "== ruff check ."; $(PY) -m ruff check . || failed="$$failed ruff"; \
+	echo "== mypy"; $(PY) -m mypy || failed="$$failed mypy"; \
+	echo "== pytest"; rc=0; $(PY) -m pytest -q || rc=$$?; \
+	if [ $$rc -eq 5 ]; then \
+	  echo "make test: pytest collected no tests; failing" >&2; failed="$$failed pytest(no-tests)"; \
+	elif [ $$rc -ne 0 ]; then failed="$$failed pytest"; fi; \
+	if [ -n "$$failed" ]; then echo "make test: FAILED:$$failed" >&2; exit 1; fi
+
+bench: $(BENCH_STAMP)
+	$(PY) bench/solvers.py
+
+clean:
+	rm -rf build install log out

@@ -1,0 +1,228 @@
+"""The three ways to run H₂O over a whole pose graph: offline, online and exact.
+
+* :func:`solve_offline` — the paper's Algorithm 1: grow a breadth-first spanning tree, sort the
+  edges by increasing root depth (3.3.12), relax them one at a time, GPS edges in batches,
+  for a number of passes with a cooling temperature.
+* :func:`solve_online` — the thesis' Algorithm 1: poses arrive one at a time; at the arrival of
+  pose ``k`` every edge whose newest pose is ``k`` is added (AddEdge) and relaxed. Per-callback
+  wall times are recorded. Optional offline passes follow.
+* :func:`solve_exact` — the batch of all edges (exact Gauss–Newton), damped when the energy
+  would rise, iterated to convergence.
+
+Each returns a :class:`SolveResult` with the final world poses and the χ² history, scored by
+the one evaluator :func:`h2o_slam.graph.chi2`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from h2o_slam import geometry as geo
+from h2o_slam.geometry import Array
+from h2o_slam.graph import EARTH, EdgeKind, PoseGraph, chi2
+from h2o_slam.solver import H2OSolver, SolverConfig
+from h2o_slam.tree import PoseTree, spanning_parents
+
+
+@dataclass
+class SolveResult:
+    """Outcome of a solve.
+
+    Attributes:
+        R, t: world poses of the solution, ``(N, 3, 3)`` and ``(N, 3)``.
+        chi2_initial: χ² of the starting estimate.
+        chi2_per_pass: χ² after each pass (offline), iteration (exact), or the online pass
+            followed by any offline passes.
+        per_callback_ms: online mode: wall time of each pose's callback (ms).
+    """
+
+    R: Array
+    t: Array
+    chi2_initial: float
+    chi2_per_pass: list[float] = field(default_factory=list)
+    per_callback_ms: list[float] = field(default_factory=list)
+
+    @property
+    def chi2_final(self) -> float:
+        """χ² after the last pass (the initial χ² when no pass ran)."""
+        return self.chi2_per_pass[-1] if self.chi2_per_pass else self.chi2_initial
+
+
+INITS = ("input", "tree")
+
+
+def build_solver(
+    graph: PoseGraph, config: SolverConfig | None = None, init: str = "tree"
+) -> tuple[H2OSolver, PoseGraph]:
+    """A solver over the whole graph on a breadth-first spanning tree of its relative edges.
+
+    ``init="input"`` starts from the graph's estimate (its vertices, or the odometry chain);
+    ``init="tree"`` starts, as the thesis does (3.4.2), from the tree edges' measurements
+    concatenated down from the root, so that every tree edge starts with zero error.
+
+    Returns the solver and the graph holding the starting estimate.
+    """
+    if init not in INITS:
+        raise ValueError(f"unknown init {init!r}; choose one of {', '.join(INITS)}")
+    rel = graph.kind == EdgeKind.RELATIVE
+    parents = spanning_parents(graph.num_nodes, graph.a[rel], graph.b[rel])
+    if init == "tree":
+        graph = graph.with_estimate(*tree_estimate(graph, parents))
+    return H2OSolver.from_graph(graph, parents, config), graph
+
+
+def tree_estimate(graph: PoseGraph, parents: np.ndarray) -> tuple[Array, Array]:
+    """World poses from concatenating the tree edges' measurements down from the root.
+
+    Subtree tops keep their estimate from ``graph``.
+    """
+    tree = PoseTree.from_parents(parents, graph.R, graph.t)
+    rel = np.flatnonzero(graph.kind == EdgeKind.RELATIVE)
+    a, b = graph.a[rel], graph.b[rel]
+    down = rel[parents[b] == a]
+    up = rel[(parents[a] == b) & (parents[b] != a)]
+    # Later assignments win; write the reversed edges first so forward ones take precedence.
+    R_up, t_up = geo.inverse(graph.meas_R[up], graph.meas_t[up])
+    tree.R[graph.a[up]], tree.t[graph.a[up]] = R_up, t_up
+    tree.R[graph.b[down]], tree.t[graph.b[down]] = graph.meas_R[down], graph.meas_t[down]
+    return tree.world_poses()
+
+
+def offline_order(solver: H2OSolver) -> list[int]:
+    """Edges by increasing root depth (3.3.12): relaxing an edge never moves nodes above its
+    root, so this order does not undo work done higher in the tree."""
+    depth = np.array([solver.root_depth(e) for e in range(solver.num_edges)])
+    return [int(e) for e in np.argsort(depth, kind="stable")]
+
+
+def offline_pass(solver: H2OSolver, order: list[int]) -> None:
+    """One pass of the paper's Algorithm 1 over ``order``: GPS edges are gathered and relaxed
+    together in batches of ``gps_batch_size``; other edges one at a time."""
+    batch: list[int] = []
+    size = solver.config.gps_batch_size
+    for e in order:
+        if len(batch) >= size:
+            solver.relax_batch(batch)
+            batch = []
+        if solver.kind[e] == EdgeKind.POSITION:
+            batch.append(e)
+        else:
+            solver.relax_batch(batch)
+            batch = []
+            solver.relax(e)
+    solver.relax_batch(batch)
+    solver.end_pass()
+
+
+def solve_offline(
+    graph: PoseGraph, passes: int = 10, config: SolverConfig | None = None, init: str = "tree"
+) -> SolveResult:
+    """Relax the whole graph for ``passes`` passes (paper Algorithm 1); see
+    :func:`build_solver` for ``init``."""
+    solver, start = build_solver(graph, config, init)
+    result = SolveResult(start.R.copy(), start.t.copy(), chi2(start))
+    order = offline_order(solver)
+    for _ in range(passes):
+        offline_pass(solver, order)
+        result.chi2_per_pass.append(solver.chi2(graph))
+    result.R, result.t = solver.world_poses()
+    return result
+
+
+def solve_exact(
+    graph: PoseGraph, iterations: int = 20, config: SolverConfig | None = None,
+    init: str = "tree",
+) -> SolveResult:
+    """Gauss–Newton on the batch of all edges, with Levenberg damping when χ² would rise;
+    see :func:`build_solver` for ``init``."""
+    solver, start = build_solver(graph, config, init)
+    tol = solver.config.exact_tolerance
+    current = chi2(start)
+    result = SolveResult(start.R.copy(), start.t.copy(), current)
+    damping = 0.0
+    for _ in range(iterations):
+        improved, current_new = _damped_step(solver, graph, current, damping)
+        if improved is None:
+            break
+        damping = improved
+        done = current - current_new <= tol * max(current, 1e-300)
+        current = current_new
+        result.chi2_per_pass.append(current)
+        if done:
+            break
+    result.R, result.t = solver.world_poses()
+    return result
+
+
+def _damped_step(
+    solver: H2OSolver, graph: PoseGraph, current: float, damping: float
+) -> tuple[float | None, float]:
+    """Take one exact step, raising the damping until χ² does not rise.
+
+    Returns the damping to use next (None when no step helps) and the new χ².
+    """
+    saved_R = solver.tree.R.copy()
+    saved_t = solver.tree.t.copy()
+    for _ in range(12):
+        x, nodes = solver.exact_step(damping)
+        solver.apply_step(nodes, x)
+        new = solver.chi2(graph)
+        if np.isfinite(new) and new <= current:
+            return damping / 10.0 if damping > 1e-9 else 0.0, new
+        solver.tree.R[:] = saved_R
+        solver.tree.t[:] = saved_t
+        damping = max(1e-6, damping * 10.0)
+    return None, current
+
+
+def solve_online(
+    graph: PoseGraph, passes: int = 0, config: SolverConfig | None = None
+) -> SolveResult:
+    """Feed the graph pose by pose, relaxing each arriving edge (thesis Algorithm 1), then run
+    ``passes`` offline passes. Records the wall time of every pose's callback."""
+    solver = H2OSolver(graph.planar, config)
+    result = SolveResult(graph.R.copy(), graph.t.copy(), chi2(graph))
+    for node, edges in enumerate(arrivals(graph)):
+        start = time.perf_counter()
+        online_callback(solver, graph, node, edges)
+        result.per_callback_ms.append(1e3 * (time.perf_counter() - start))
+    result.chi2_per_pass.append(solver.chi2(graph))
+    order = offline_order(solver)
+    for _ in range(passes):
+        offline_pass(solver, order)
+        result.chi2_per_pass.append(solver.chi2(graph))
+    result.R, result.t = solver.world_poses()
+    return result
+
+
+def arrivals(graph: PoseGraph) -> list[np.ndarray]:
+    """For each pose ``k``, the edges whose newest pose is ``k``, odometry-like edges (to the
+    most recent earlier pose) first."""
+    newest = np.where(graph.a == EARTH, graph.b, np.maximum(graph.a, graph.b))
+    other = np.where(graph.a == EARTH, -1, np.minimum(graph.a, graph.b))
+    order = np.lexsort((-other, newest))
+    bounds = np.searchsorted(newest[order], np.arange(graph.num_nodes + 1))
+    return [order[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
+def online_callback(solver: H2OSolver, graph: PoseGraph, node: int, edges: np.ndarray) -> None:
+    """Add pose ``node`` and its edges to the solver and relax them (thesis Algorithm 1).
+
+    A pose with no relative edge to an earlier pose starts a new subtree at its estimate.
+    """
+    rel = [e for e in edges if graph.kind[e] == EdgeKind.RELATIVE]
+    if not rel:
+        solver.add_pose(graph.R[node], graph.t[node])
+    size = solver.config.gps_batch_size
+    for e in list(rel) + [e for e in edges if graph.kind[e] != EdgeKind.RELATIVE]:
+        edge = solver.add_edge(
+            int(graph.kind[e]), int(graph.a[e]), int(graph.b[e]),
+            graph.meas_R[e], graph.meas_t[e], graph.info[e],
+        )
+        if solver.kind[edge] == EdgeKind.POSITION:
+            solver.relax_batch(solver.upstream_gps(solver.b[edge], size))
+        else:
+            solver.relax(edge)

@@ -1,0 +1,459 @@
+"""H₂O: the hybrid-Hessian pose-graph solver (thesis chapter 3).
+
+:class:`H2OSolver` holds a pose tree (:mod:`h2o_slam.tree`), the edges, and the block-diagonal
+regularizer ``B = Σₑ 𝔅(Jₑᵀ Jₑ)`` (one ``p × p`` block per node, ``p`` = 3 planar or 6), kept
+up to date incrementally (eq. 3.32): every edge remembers the diagonal blocks it last
+contributed, and relaxing it swaps the old contribution for the one at its new linearization.
+
+Verbs:
+
+* :meth:`H2OSolver.add_edge` — Algorithm 2 (AddEdge): an edge to a new node becomes that
+  node's tree edge and initializes it; any other edge is a cross edge.
+* :meth:`H2OSolver.relax` — the single-edge update (3.29)–(3.35) on the edge's domain.
+* :meth:`H2OSolver.relax_batch` — the batch update (3.40)–(3.42) of a set of edges.
+* :meth:`H2OSolver.exact_step` — the batch of all edges, i.e. one Gauss–Newton step, solved
+  in world coordinates with a sparse factorization and mapped back to the tree's local
+  coordinates, damped (Levenberg) when the energy would rise.
+
+Updates are scaled by the temperature τ (3.3.11) and capped so that no node turns by more
+than π/8 in one update.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from h2o_slam import geometry as geo
+from h2o_slam.errors import GraphError
+from h2o_slam.geometry import Array
+from h2o_slam.graph import EARTH, EdgeKind, PoseGraph, chi2
+from h2o_slam.hybrid import solve_hybrid
+from h2o_slam.jacobians import chain_jacobians, endpoint_jacobians
+from h2o_slam.tree import EdgePath, PoseTree
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """Tuning of the H₂O solver; defaults follow the thesis.
+
+    Attributes:
+        temperature_decay: factor applied to τ after each full pass (3.3.11).
+        max_rotation_step_rad: largest rotation one update may apply to a node (3.3.11).
+        gps_batch_size: GPS edges relaxed together in one batch update (3.3.10).
+        exact_tolerance: relative χ² decrease below which exact mode stops.
+    """
+
+    temperature_decay: float = 0.99
+    max_rotation_step_rad: float = math.pi / 8
+    gps_batch_size: int = 30
+    exact_tolerance: float = 1e-10
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.temperature_decay <= 1.0:
+            raise ValueError("temperature_decay must be in (0, 1]")
+        if not self.max_rotation_step_rad > 0.0:
+            raise ValueError("max_rotation_step_rad must be positive")
+        if self.gps_batch_size < 1:
+            raise ValueError("gps_batch_size must be at least 1")
+
+
+@dataclass(frozen=True)
+class Linearization:
+    """One edge linearized over its domain: ``r + Σᵢ Jᵢ xᵢ`` approximates its whitened error."""
+
+    domain: np.ndarray  # (d,) node indices
+    J: Array  # (d, p, p) whitened Jacobian blocks w.r.t. local perturbations
+    r: Array  # (p,) whitened residual
+
+
+def whitening(info: Array, dof: np.ndarray) -> Array:
+    """``W`` with ``Wᵀ W = S`` for information matrices ``S`` restricted to ``dof``."""
+    S = info[..., dof[:, None], dof[None, :]]
+    lam, U = np.linalg.eigh(S)
+    return np.sqrt(np.maximum(lam, 0.0))[..., :, None] * np.swapaxes(U, -1, -2)
+
+
+class H2OSolver:
+    """Pose tree, edges and regularizer of one pose graph; see the module docstring.
+
+    Node ``i`` of the solver is node ``i`` of the graph it was built from.
+    """
+
+    def __init__(self, planar: bool, config: SolverConfig | None = None) -> None:
+        self.config = config or SolverConfig()
+        self.planar = planar
+        self.dof = geo.PLANAR_DOF if planar else np.arange(6)
+        self.p = len(self.dof)
+        self.tree = PoseTree()
+        self.B = np.zeros((16, self.p, self.p))
+        self.temperature = 1.0
+        self.kind: list[int] = []
+        self.a: list[int] = []
+        self.b: list[int] = []
+        self.meas_R: list[Array] = []
+        self.meas_t: list[Array] = []
+        self.W: list[Array] = []
+        self._paths: list[EdgePath | None] = []
+        self._contrib: list[tuple[np.ndarray, Array] | None] = []
+        self._gps_at: dict[int, list[int]] = {}
+
+    # -- building -----------------------------------------------------------------------------
+
+    @property
+    def num_nodes(self) -> int:
+        """Nodes in the tree."""
+        return self.tree.n
+
+    @property
+    def num_edges(self) -> int:
+        """Edges added so far."""
+        return len(self.kind)
+
+    def add_pose(self, R_world: Array, t_world: Array) -> int:
+        """Add a node hanging from the earth at a world pose (a new subtree)."""
+        node = self.tree.add_node(EARTH, R_world, t_world)
+        self._grow_B()
+        return node
+
+    def add_edge(
+        self, kind: int, a: int, b: int, meas_R: Array, meas_t: Array, info: Array
+    ) -> int:
+        """Add an edge (Algorithm 2 without rebalancing) and return its index.
+
+        ``b == num_nodes`` (or ``a == num_nodes`` for a relative edge) adds that node as the
+        other endpoint's child, initialized through this edge's measurement. The edge's
+        contribution is added to the regularizer ``B``.
+
+        Raises:
+            GraphError: an endpoint does not exist, or a global edge would create a node.
+        """
+        n = self.num_nodes
+        if kind == EdgeKind.RELATIVE and a == n and b < n:
+            R_inv, t_inv = geo.inverse(meas_R, meas_t)
+            self.tree.add_node(b, R_inv, t_inv)
+            self._grow_B()
+        elif kind == EdgeKind.RELATIVE and b == n and 0 <= a < n:
+            self.tree.add_node(a, meas_R, meas_t)
+            self._grow_B()
+        elif kind != EdgeKind.RELATIVE and b == n:
+            raise GraphError("a GPS or orientation edge cannot create a node; add it first")
+        if not (0 <= b < self.num_nodes) or not (a == EARTH or 0 <= a < self.num_nodes):
+            raise GraphError(f"edge ({a}, {b}) refers to an unknown node")
+        if (kind == EdgeKind.RELATIVE) == (a == EARTH):
+            raise GraphError("relative edges join two nodes; global edges start at the earth")
+        edge = self._append_edge(kind, a, b, meas_R, meas_t, info)
+        lin = self.linearize(edge)
+        self.B[lin.domain] += _gram(lin.J)
+        self._contrib[edge] = (lin.domain, _gram(lin.J))
+        return edge
+
+    def _append_edge(
+        self, kind: int, a: int, b: int, meas_R: Array, meas_t: Array, info: Array
+    ) -> int:
+        edge = self.num_edges
+        self.kind.append(int(kind))
+        self.a.append(int(a))
+        self.b.append(int(b))
+        self.meas_R.append(np.asarray(meas_R, dtype=float))
+        self.meas_t.append(np.asarray(meas_t, dtype=float))
+        self.W.append(whitening(np.asarray(info, dtype=float), self.dof))
+        self._paths.append(None)
+        self._contrib.append(None)
+        if kind != EdgeKind.RELATIVE:
+            self._gps_at.setdefault(int(b), []).append(edge)
+        return edge
+
+    def _grow_B(self) -> None:
+        if self.tree.n > len(self.B):
+            extra = np.zeros((len(self.B), self.p, self.p))
+            self.B = np.concatenate([self.B, extra])
+
+    @classmethod
+    def from_graph(
+        cls, graph: PoseGraph, parents: np.ndarray, config: SolverConfig | None = None
+    ) -> H2OSolver:
+        """A solver over all of ``graph`` with the given spanning tree, starting from the
+        graph's estimate; ``B`` holds every edge's contribution at that estimate."""
+        solver = cls(graph.planar, config)
+        solver.tree = PoseTree.from_parents(parents, graph.R, graph.t)
+        solver.B = np.zeros((graph.num_nodes, solver.p, solver.p))
+        for e in range(graph.num_edges):
+            solver._append_edge(
+                int(graph.kind[e]), int(graph.a[e]), int(graph.b[e]),
+                graph.meas_R[e], graph.meas_t[e], graph.info[e],
+            )
+        for e in range(graph.num_edges):
+            lin = solver.linearize(e)
+            contrib = _gram(lin.J)
+            solver.B[lin.domain] += contrib
+            solver._contrib[e] = (lin.domain, contrib)
+        return solver
+
+    # -- queries ------------------------------------------------------------------------------
+
+    def path(self, edge: int) -> EdgePath:
+        """The tree path of an edge (cached until the tree changes)."""
+        cached = self._paths[edge]
+        if cached is None:
+            cached = self.tree.path(self.a[edge], self.b[edge])
+            self._paths[edge] = cached
+        return cached
+
+    def root_depth(self, edge: int) -> int:
+        """Depth of the edge's root (0 for the earth)."""
+        root = self.path(edge).root
+        return 0 if root == EARTH else int(self.tree.depth[root])
+
+    def world_poses(self) -> tuple[Array, Array]:
+        """World poses of all nodes, shapes ``(N, 3, 3)`` and ``(N, 3)``."""
+        return self.tree.world_poses()
+
+    def chi2(self, graph: PoseGraph) -> float:
+        """χ² of ``graph`` (the graph this solver holds) at the solver's current estimate."""
+        R, t = self.world_poses()
+        return chi2(graph, R, t)
+
+    def linearize(self, edge: int) -> Linearization:
+        """Whitened residual and Jacobian blocks of one edge over its domain (appendix B)."""
+        path = self.path(edge)
+        Ra, xa, Rpar_a, R_A, x_A = self._chain(path.a_chain)
+        Rb, xb, Rpar_b, R_B, x_B = self._chain(path.b_chain)
+        e, Ja, Jb = endpoint_jacobians(
+            np.array([self.kind[edge]]), Ra[None], xa[None], Rb[None], xb[None],
+            self.meas_R[edge][None], self.meas_t[edge][None],
+        )
+        blocks = [Ja[0] @ chain_jacobians(Rpar_a, R_A, x_A, xa)] if len(path.a_chain) else []
+        blocks.append(Jb[0] @ chain_jacobians(Rpar_b, R_B, x_B, xb))
+        J = np.concatenate(blocks)[:, self.dof[:, None], self.dof[None, :]]
+        W = self.W[edge]
+        return Linearization(path.domain, W @ J, W @ e[0, self.dof])
+
+    def _chain(self, chain: np.ndarray) -> tuple[Array, Array, Array, Array, Array]:
+        """End pose, parents' rotations and poses of a chain, in its root's frame."""
+        if len(chain) == 0:
+            empty = np.zeros((0, 3, 3))
+            return np.eye(3), np.zeros(3), empty, empty, np.zeros((0, 3))
+        R, x = self.tree.chain_poses(chain)
+        R_parent = np.concatenate([np.eye(3)[None], R[:-1]])
+        return R[-1], x[-1], R_parent, R, x
+
+    # -- updates ------------------------------------------------------------------------------
+
+    def relax(self, edge: int) -> None:
+        """Single-edge hybrid-Hessian update of ``edge`` (thesis 3.3.5)."""
+        lin = self.linearize(edge)
+        old_nodes, old_blocks = self._contrib[edge]  # type: ignore[misc]
+        B_c = self.B[lin.domain]
+        if np.array_equal(old_nodes, lin.domain):
+            B_c -= old_blocks
+        else:  # the tree changed since this edge last contributed
+            self.B[old_nodes] -= old_blocks
+            B_c = self.B[lin.domain]
+        x = solve_hybrid(lin.J, lin.r, B_c)
+        self._apply(lin.domain, x)
+        contrib = _gram(lin.J)
+        self.B[lin.domain] = B_c + contrib
+        self._contrib[edge] = (lin.domain, contrib)
+
+    def relax_batch(self, edges: list[int] | np.ndarray) -> None:
+        """Batch update of a set of edges (thesis 3.3.7, eq. 3.40–3.42).
+
+        The edges' own contributions are taken out of ``B``; the rest regularizes the step.
+        With every edge of the graph in the batch this is the Gauss–Newton step.
+        """
+        edges = [int(e) for e in edges]
+        if not edges:
+            return
+        lins = [self.linearize(e) for e in edges]
+        nodes = np.unique(np.concatenate([lin.domain for lin in lins]))
+        if len(edges) == self.num_edges:
+            B_c = np.zeros((len(nodes), self.p, self.p))
+        else:
+            for e in edges:
+                old_nodes, old_blocks = self._contrib[e]  # type: ignore[misc]
+                np.subtract.at(self.B, old_nodes, old_blocks)
+            B_c = self.B[nodes]
+        J, r = self._stack(lins, nodes)
+        x = _solve_regularized(J, r, B_c).reshape(len(nodes), self.p)
+        self._apply(nodes, x)
+        self.B[nodes] = B_c
+        for e, lin in zip(edges, lins, strict=True):
+            contrib = _gram(lin.J)
+            np.add.at(self.B, lin.domain, contrib)
+            self._contrib[e] = (lin.domain, contrib)
+
+    def _stack(self, lins: list[Linearization], nodes: np.ndarray) -> tuple[sp.csr_matrix, Array]:
+        p = self.p
+        rows, cols, vals = [], [], []
+        col_of = np.full(self.num_nodes, -1)
+        col_of[nodes] = np.arange(len(nodes))
+        ii, jj = np.meshgrid(np.arange(p), np.arange(p), indexing="ij")
+        for k, lin in enumerate(lins):
+            c = col_of[lin.domain]
+            rows.append(np.broadcast_to(k * p + ii, lin.J.shape).ravel())
+            cols.append((c[:, None, None] * p + jj).ravel())
+            vals.append(lin.J.ravel())
+        J = sp.csr_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+            shape=(len(lins) * p, len(nodes) * p),
+        )
+        return J, np.concatenate([lin.r for lin in lins])
+
+    def _apply(self, nodes: np.ndarray, x: Array, scale: float | None = None) -> None:
+        """Apply a local step ``x`` (``(d, p)``) to ``nodes``, scaled by τ and capped."""
+        full = np.zeros((len(nodes), 6))
+        full[:, self.dof] = x
+        if scale is None:
+            largest = float(np.max(np.linalg.norm(full[:, 3:], axis=1), initial=0.0))
+            cap = self.config.max_rotation_step_rad
+            scale = self.temperature if largest * self.temperature <= cap else cap / largest
+        full *= scale
+        tree = self.tree
+        tree.t[nodes] += full[:, :3]
+        tree.R[nodes] = tree.R[nodes] @ geo.so3_exp(full[:, 3:])
+
+    def exact_step(self, damping: float = 0.0) -> tuple[Array, np.ndarray]:
+        """The Gauss–Newton step of all edges as a local step per node, without applying it.
+
+        Solved in world coordinates, where ``JᵀJ`` has the sparsity of the graph (the tree's
+        local coordinates would make every edge's domain a dense clique), then mapped to the
+        tree's local coordinates by the exact linear change of variables.
+        ``damping`` adds ``damping · diag(H)`` (Levenberg–Marquardt).
+
+        Returns:
+            ``(x, nodes)``: the local step ``(len(nodes), p)`` for the nodes that move.
+        """
+        R, x = self.world_poses()
+        J, r, free = self._world_system(R, x)
+        H = (J.T @ J).tocsc()
+        g = J.T @ r
+        if damping > 0.0:
+            H = H + damping * sp.diags(H.diagonal())
+        step = np.zeros((self.num_nodes, 6))
+        step[np.ix_(free, self.dof)] = -_solve_spd(H, g).reshape(len(free), self.p)
+        local = self._world_to_local(R, x, step)
+        return local[:, self.dof][free], free
+
+    def apply_step(self, nodes: np.ndarray, x: Array) -> None:
+        """Apply a local step in full (no temperature, no cap)."""
+        self._apply(nodes, x, scale=1.0)
+
+    def _world_system(self, R: Array, x: Array) -> tuple[sp.csr_matrix, Array, np.ndarray]:
+        kind = np.array(self.kind)
+        a = np.array(self.a)
+        b = np.array(self.b)
+        glob = a == EARTH
+        a_idx = np.where(glob, 0, a)
+        Ra = np.where(glob[:, None, None], np.eye(3), R[a_idx])
+        xa = np.where(glob[:, None], 0.0, x[a_idx])
+        e, Ja, Jb = endpoint_jacobians(
+            kind, Ra, xa, R[b], x[b], np.array(self.meas_R), np.array(self.meas_t))
+        W = np.array(self.W)
+        dof = self.dof
+        r = np.einsum("mij,mj->mi", W, e[:, dof]).ravel()
+        Ja = W @ Ja[:, dof[:, None], dof[None, :]]
+        Jb = W @ Jb[:, dof[:, None], dof[None, :]]
+        free = self._free_nodes(a, b)
+        col = np.full(self.num_nodes, -1)
+        col[free] = np.arange(len(free))
+        J = _block_rows(Ja, Jb, np.where(glob, -1, col[a_idx]), col[b], len(free), self.p)
+        return J, r, free
+
+    def _free_nodes(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        # A subtree top moves only if some edge's root is the earth: a global edge into its
+        # subtree, or a relative edge to another subtree. Otherwise it holds the gauge.
+        tops = self.tree.tops()
+        moved = np.zeros(self.num_nodes, dtype=bool)
+        glob = a == EARTH
+        moved[tops[b[glob]]] = True
+        rel = ~glob
+        cross = tops[a[rel]] != tops[b[rel]]
+        moved[tops[a[rel][cross]]] = True
+        moved[tops[b[rel][cross]]] = True
+        is_top = self.tree.parent[: self.num_nodes] == EARTH
+        return np.flatnonzero(~is_top | moved)
+
+    def _world_to_local(self, R: Array, x: Array, step: Array) -> Array:
+        """Map world perturbations ``(δx, ω)`` of every node to local ``(δt, δθ)``.
+
+        From ``ω_n = ω_p + R_n δθ_n`` and ``δx_n = δx_p − [x_n − x_p]× ω_p + R_p δt_n``.
+        """
+        parent = self.tree.parent[: self.num_nodes]
+        top = parent == EARTH
+        p = np.where(top, 0, parent)
+        dx_p = np.where(top[:, None], 0.0, step[p, :3])
+        w_p = np.where(top[:, None], 0.0, step[p, 3:])
+        R_p = np.where(top[:, None, None], np.eye(3), R[p])
+        x_p = np.where(top[:, None], 0.0, x[p])
+        moved = step[:, :3] - dx_p + np.cross(x - x_p, w_p)
+        out = np.empty_like(step)
+        out[:, :3] = np.einsum("nji,nj->ni", R_p, moved)
+        out[:, 3:] = np.einsum("nji,nj->ni", R, step[:, 3:] - w_p)
+        return out
+
+    # -- bookkeeping --------------------------------------------------------------------------
+
+    def end_pass(self) -> None:
+        """Cool the temperature and re-orthonormalize rotations after a full pass."""
+        self.temperature *= self.config.temperature_decay
+        n = self.num_nodes
+        self.tree.R[:n] = geo.orthonormalize(self.tree.R[:n])
+
+    def upstream_gps(self, node: int, count: int) -> list[int]:
+        """``GetUpstreamGPSes``: the first ``count`` GPS edges found walking up from ``node``."""
+        found: list[int] = []
+        while node != EARTH and len(found) < count:
+            attached = self._gps_at.get(node, ())
+            found.extend(e for e in attached if self.kind[e] == EdgeKind.POSITION)
+            node = int(self.tree.parent[node])
+        return found[:count]
+
+
+def _gram(J: Array) -> Array:
+    """Diagonal blocks ``Jᵢᵀ Jᵢ`` of ``JᵀJ``."""
+    return np.swapaxes(J, -1, -2) @ J
+
+
+def _block_rows(
+    Ja: Array, Jb: Array, col_a: np.ndarray, col_b: np.ndarray, num_cols: int, p: int
+) -> sp.csr_matrix:
+    """Sparse ``J`` with one block row per edge and blocks at columns ``col_a`` / ``col_b``
+    (a column of -1 drops the block: a fixed node or the earth)."""
+    m = len(Ja)
+    ii, jj = np.meshgrid(np.arange(p), np.arange(p), indexing="ij")
+    rows, cols, vals = [], [], []
+    for blocks, col in ((Ja, col_a), (Jb, col_b)):
+        keep = col >= 0
+        k = np.flatnonzero(keep)
+        rows.append((k[:, None, None] * p + ii).ravel())
+        cols.append((col[keep][:, None, None] * p + jj).ravel())
+        vals.append(blocks[keep].ravel())
+    return sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+        shape=(m * p, num_cols * p),
+    )
+
+
+def _solve_spd(H: sp.csc_matrix, g: Array) -> Array:
+    """Solve ``H x = g`` for a sparse symmetric positive (semi-)definite ``H``.
+
+    A singular ``H`` (an unconstrained direction) falls back to the minimum-norm solution.
+    """
+    try:
+        x = spla.splu(H, permc_spec="MMD_AT_PLUS_A").solve(g)
+        if np.all(np.isfinite(x)):
+            return x
+    except RuntimeError:
+        pass
+    return spla.lsqr(H, g, atol=1e-14, btol=1e-14, iter_lim=10 * H.shape[0])[0]
+
+
+def _solve_regularized(J: sp.csr_matrix, r: Array, B: Array) -> Array:
+    """Minimizer of ``‖J x + r‖² + Σᵢ xᵢᵀ Bᵢ xᵢ`` for sparse ``J`` and blocks ``B``."""
+    H = (J.T @ J + sp.block_diag(list(B), format="csr")).tocsc()
+    return -_solve_spd(H, J.T @ r)

@@ -1,0 +1,196 @@
+"""The pose tree (thesis 3.3.2): each pose is stored relative to its parent.
+
+The earth is the root. It is not a node of the arrays: a node whose parent is
+:data:`~h2o_slam.graph.EARTH` is the top of a subtree, and its local transform is its pose in
+the world frame. An edge's *path* runs through the tree from ``a`` to ``b``; its *root* is the
+path node of smallest depth (the lowest common ancestor, possibly the earth); its *domain* is
+the path without the root — the nodes whose local transforms change the edge's error.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from h2o_slam import geometry as geo
+from h2o_slam.geometry import Array
+from h2o_slam.graph import EARTH
+
+
+@dataclass(frozen=True)
+class EdgePath:
+    """The tree path of one edge.
+
+    Attributes:
+        root: the lowest common ancestor of ``a`` and ``b`` (:data:`EARTH` possibly).
+        a_chain: nodes from just below the root down to ``a`` (empty when ``a`` is the root).
+        b_chain: nodes from just below the root down to ``b``.
+    """
+
+    root: int
+    a_chain: np.ndarray
+    b_chain: np.ndarray
+
+    @property
+    def domain(self) -> np.ndarray:
+        """The nodes whose local transforms change the edge's error: both chains."""
+        return np.concatenate([self.a_chain, self.b_chain])
+
+
+class PoseTree:
+    """Parent pointers, depths and local transforms of ``n`` nodes under the earth.
+
+    ``R[i], t[i]`` map node ``i``'s frame into its parent's frame. Depth of a top node is 1
+    (the earth has depth 0).
+    """
+
+    def __init__(self, capacity: int = 16) -> None:
+        self.n = 0
+        self.parent = np.full(capacity, EARTH, dtype=np.int64)
+        self.depth = np.zeros(capacity, dtype=np.int64)
+        self.R = np.tile(np.eye(3), (capacity, 1, 1))
+        self.t = np.zeros((capacity, 3))
+
+    # -- growth -------------------------------------------------------------------------------
+
+    def add_node(self, parent: int, R_local: Array, t_local: Array) -> int:
+        """Append a node under ``parent`` (:data:`EARTH` for a new top) and return its index."""
+        if self.n == len(self.parent):
+            self._grow(2 * len(self.parent))
+        i = self.n
+        self.parent[i] = parent
+        self.depth[i] = 1 if parent == EARTH else self.depth[parent] + 1
+        self.R[i] = R_local
+        self.t[i] = t_local
+        self.n += 1
+        return i
+
+    def _grow(self, capacity: int) -> None:
+        extra = capacity - len(self.parent)
+        self.parent = np.concatenate([self.parent, np.full(extra, EARTH, dtype=np.int64)])
+        self.depth = np.concatenate([self.depth, np.zeros(extra, dtype=np.int64)])
+        self.R = np.concatenate([self.R, np.tile(np.eye(3), (extra, 1, 1))])
+        self.t = np.concatenate([self.t, np.zeros((extra, 3))])
+
+    @classmethod
+    def from_parents(cls, parent: np.ndarray, R_world: Array, t_world: Array) -> PoseTree:
+        """A tree with the given parent pointers and local transforms that reproduce the world
+        poses ``(R_world, t_world)``.
+
+        Raises:
+            ValueError: the parent pointers contain a cycle.
+        """
+        tree = cls(capacity=max(len(parent), 1))
+        n = len(parent)
+        tree.n = n
+        tree.parent[:n] = parent
+        tree.depth[:n] = _depths(np.asarray(parent))
+        top = parent == EARTH
+        p = np.where(top, 0, parent)
+        R_loc, t_loc = geo.between(R_world[p], t_world[p], R_world, t_world)
+        tree.R[:n] = np.where(top[:, None, None], R_world, R_loc)
+        tree.t[:n] = np.where(top[:, None], t_world, t_loc)
+        return tree
+
+    # -- queries ------------------------------------------------------------------------------
+
+    def path(self, a: int, b: int) -> EdgePath:
+        """The tree path between ``a`` and ``b`` (``a`` may be :data:`EARTH`)."""
+        parent, depth = self.parent, self.depth
+        up_a: list[int] = []
+        up_b: list[int] = []
+        da = 0 if a == EARTH else int(depth[a])
+        db = int(depth[b])
+        while db > da:
+            up_b.append(b)
+            b = int(parent[b])
+            db -= 1
+        while da > db:
+            up_a.append(a)
+            a = int(parent[a])
+            da -= 1
+        while a != b:
+            up_a.append(a)
+            up_b.append(b)
+            a = int(parent[a])
+            b = int(parent[b])
+        return EdgePath(a, np.array(up_a[::-1], dtype=np.int64),
+                        np.array(up_b[::-1], dtype=np.int64))
+
+    def chain_poses(self, chain: np.ndarray) -> tuple[Array, Array]:
+        """Poses of the chain's nodes in the frame of the first node's parent."""
+        return geo.cumulative_compose(self.R[chain], self.t[chain])
+
+    def world_poses(self) -> tuple[Array, Array]:
+        """World poses of all nodes, composed level by level from the earth down."""
+        n = self.n
+        R = self.R[:n].copy()
+        t = self.t[:n].copy()
+        for level in self._levels():
+            p = self.parent[level]
+            R[level], t[level] = geo.compose(R[p], t[p], self.R[level], self.t[level])
+        return R, t
+
+    def _levels(self) -> list[np.ndarray]:
+        """Node indices grouped by depth ≥ 2, shallowest first."""
+        depth = self.depth[: self.n]
+        order = np.argsort(depth, kind="stable")
+        bounds = np.searchsorted(depth[order], np.arange(2, depth.max(initial=1) + 2))
+        return [order[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
+
+    def set_world_poses(self, R_world: Array, t_world: Array) -> None:
+        """Set every local transform so that the world poses become ``(R_world, t_world)``."""
+        n = self.n
+        parent = self.parent[:n]
+        top = parent == EARTH
+        p = np.where(top, 0, parent)
+        R_loc, t_loc = geo.between(R_world[p], t_world[p], R_world, t_world)
+        self.R[:n] = np.where(top[:, None, None], R_world, R_loc)
+        self.t[:n] = np.where(top[:, None], t_world, t_loc)
+
+    def tops(self) -> np.ndarray:
+        """The top of each node's subtree (its ancestor just below the earth)."""
+        top = np.arange(self.n)
+        for level in self._levels():
+            top[level] = top[self.parent[level]]
+        return top
+
+
+def _depths(parent: np.ndarray) -> np.ndarray:
+    n = len(parent)
+    depth = np.zeros(n, dtype=np.int64)
+    depth[parent == EARTH] = 1
+    for _ in range(n):
+        todo = depth == 0
+        if not np.any(todo):
+            return depth
+        ready = todo & (depth[np.where(parent < 0, 0, parent)] > 0)
+        if not np.any(ready):
+            break
+        depth[ready] = depth[parent[ready]] + 1
+    raise ValueError("parent pointers contain a cycle or an unknown parent")
+
+
+def spanning_parents(
+    num_nodes: int, a: np.ndarray, b: np.ndarray, roots: list[int] | None = None
+) -> np.ndarray:
+    """Parent pointers of a breadth-first spanning forest of the graph with edges ``(a, b)``.
+
+    Breadth-first keeps the tree shallow, which bounds the path length of every edge.
+    Each connected component hangs from the earth at its first node (or at ``roots``).
+    Only relative edges should be passed: GPS edges make poor tree edges (thesis 3.3.10).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order
+
+    adj = coo_matrix((np.ones(len(a)), (a, b)), shape=(num_nodes, num_nodes)).tocsr()
+    parent = np.full(num_nodes, -2, dtype=np.int64)
+    starts = list(roots or []) + list(range(num_nodes))
+    for s in starts:
+        if parent[s] != -2:
+            continue
+        order, pred = breadth_first_order(adj, s, directed=False, return_predecessors=True)
+        parent[order] = pred[order]
+        parent[s] = EARTH
+    return parent

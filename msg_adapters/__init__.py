@@ -1,0 +1,1 @@
+"""Pure functions between ROS messages and core types, with validation (later issue)."""

@@ -1,0 +1,33 @@
+"""Build script of the h2o_slam ament_python package (colcon and pip both use it)."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE_NAME = "h2o_slam"
+
+setup(
+    name=PACKAGE_NAME,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*", "bench", "bench.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE_NAME]),
+        ("share/" + PACKAGE_NAME, ["package.xml"]),
+        ("share/" + PACKAGE_NAME + "/config", sorted(glob("config/*"))),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="h2o_slam maintainers",
+    maintainer_email="h2o-slam@example.com",
+    description=(
+        "Flexible-cost pose-graph SLAM: hybrid wheel/visual odometry, the H2O "
+        "hybrid-Hessian solver, and LAGO."
+    ),
+    license="Apache-2.0",
+    python_requires=">=3.10",
+    entry_points={
+        "console_scripts": [
+            "h2o-solve = h2o_slam.cli.solve:main",
+        ],
+    },
+)

@@ -1,0 +1,183 @@
+"""colcon builds the package as a robot would, and `ros2 run` finds its executables.
+
+The `ros2` command itself is not on PyPI, so the lookup it performs is reproduced here:
+``ament_index_python.packages.get_package_prefix(pkg)`` through ``AMENT_PREFIX_PATH``, then
+the executable files under ``<prefix>/lib/<pkg>`` (ros2run's ``get_executable_path``). The
+executable is then run in the environment that ``source install/setup.bash`` produces.
+
+Everything colcon writes goes to a temporary directory; the source tree must stay untouched.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = "h2o_slam"
+EXECUTABLES = ["h2o-solve"]
+BUILD_TIMEOUT_S = 300
+RUN_TIMEOUT_S = 60
+
+pytestmark = pytest.mark.slow
+
+
+def _git_status() -> set[str] | None:
+    """Untracked and ignored entries of the source tree, or None outside a git checkout."""
+    if not (REPO / ".git").exists() or shutil.which("git") is None:
+        return None
+    out = subprocess.run(
+        ["git", "status", "--porcelain", "--ignored"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    return set(out.splitlines())
+
+
+def _run(
+    cmd: list[str], *, cwd: Path, env: dict[str, str], timeout: float
+) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        cmd, cwd=cwd, env=env, timeout=timeout, capture_output=True, text=True, check=False
+    )
+
+
+class ColconBuild:
+    """Paths and outcome of one ``colcon build`` into a temporary workspace."""
+
+    def __init__(self, root: Path, status_before: set[str] | None) -> None:
+        self.root = root
+        self.install = root / "install"
+        self.prefix = self.install / PACKAGE
+        self.status_before = status_before
+        self.status_after = _git_status()
+
+
+@pytest.fixture(scope="module")
+def colcon_build(tmp_path_factory: pytest.TempPathFactory) -> ColconBuild:
+    root = tmp_path_factory.mktemp("colcon_ws")
+    env = dict(os.environ)
+    # No user-level colcon defaults (e.g. a global --symlink-install) leak into the build.
+    env["COLCON_HOME"] = str(root / "colcon_home")
+    status_before = _git_status()
+    cmd = [
+        sys.executable,
+        "-m",
+        "colcon",
+        "--log-base",
+        str(root / "log"),
+        "build",
+        "--base-paths",
+        str(REPO),
+        "--build-base",
+        str(root / "build"),
+        "--install-base",
+        str(root / "install"),
+        "--event-handlers",
+        "desktop_notification-",
+        "status-",
+    ]
+    proc = _run(cmd, cwd=root, env=env, timeout=BUILD_TIMEOUT_S)
+    if proc.returncode != 0:
+        pytest.fail(
+            f"colcon build failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}",
+            pytrace=False,
+        )
+    return ColconBuild(root, status_before)
+
+
+@pytest.fixture(scope="module")
+def sourced_env(colcon_build: ColconBuild) -> dict[str, str]:
+    """The environment after ``source install/setup.bash``, as a user's shell has it."""
+    if shutil.which("bash") is None:
+        pytest.fail("bash is needed to source the colcon install space", pytrace=False)
+    proc = subprocess.run(
+        ["bash", "-c", 'source "$1/setup.bash" && env -0', "_", str(colcon_build.install)],
+        capture_output=True,
+        env=dict(os.environ),
+        timeout=RUN_TIMEOUT_S,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr.decode(errors="replace")
+    env = {}
+    for entry in proc.stdout.split(b"\0"):
+        if b"=" in entry:
+            key, _, value = entry.decode(errors="surrogateescape").partition("=")
+            env[key] = value
+    return env
+
+
+def _ros2_run_lookup(package: str, executable: str) -> Path:
+    """Resolve an executable as ``ros2 run`` does (ros2run.api.get_executable_path)."""
+    from ament_index_python.packages import get_package_prefix
+
+    base = Path(get_package_prefix(package)) / "lib" / package
+    matches = [
+        Path(dirpath) / name
+        for dirpath, _dirs, names in os.walk(base)
+        for name in names
+        if name == executable and os.access(Path(dirpath) / name, os.X_OK)
+    ]
+    assert len(matches) == 1, f"{executable} under {base}: {matches}"
+    return matches[0]
+
+
+def test_build_leaves_source_tree_untouched(colcon_build: ColconBuild) -> None:
+    if colcon_build.status_before is None or colcon_build.status_after is None:
+        pytest.skip("source tree is not a git checkout")
+    new = colcon_build.status_after - colcon_build.status_before
+    assert not new, f"colcon build wrote into the source tree: {sorted(new)}"
+
+
+def test_install_space_layout(colcon_build: ColconBuild) -> None:
+    prefix = colcon_build.prefix
+    assert (prefix / "share/ament_index/resource_index/packages" / PACKAGE).is_file()
+    assert (prefix / "share" / PACKAGE / "package.xml").is_file()
+    assert (prefix / "share" / PACKAGE / "config/fastdds_localhost.xml").is_file()
+    for name in EXECUTABLES:
+        exe = prefix / "lib" / PACKAGE / name
+        assert exe.is_file() and os.access(exe, os.X_OK), exe
+
+
+def test_sourced_install_space_imports_installed_copy(
+    colcon_build: ColconBuild, sourced_env: dict[str, str]
+) -> None:
+    assert str(colcon_build.prefix) in sourced_env["AMENT_PREFIX_PATH"].split(os.pathsep)
+    proc = _run(
+        [
+            sys.executable,
+            "-c",
+            "import h2o_slam, hybrid_vo, msg_adapters; print(h2o_slam.__file__)",
+        ],
+        env=sourced_env,
+        cwd=colcon_build.root,
+        timeout=RUN_TIMEOUT_S,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert Path(proc.stdout.strip()).is_relative_to(colcon_build.prefix), proc.stdout
+
+
+@pytest.mark.parametrize("executable", EXECUTABLES)
+def test_ros2_run_finds_and_runs_executable(
+    colcon_build: ColconBuild,
+    sourced_env: dict[str, str],
+    monkeypatch: pytest.MonkeyPatch,
+    executable: str,
+) -> None:
+    monkeypatch.setenv("AMENT_PREFIX_PATH", sourced_env["AMENT_PREFIX_PATH"])
+    exe = _ros2_run_lookup(PACKAGE, executable)
+    assert exe == colcon_build.prefix / "lib" / PACKAGE / executable
+
+    proc = _run(
+        [str(exe), "--help"], env=sourced_env, cwd=colcon_build.root, timeout=RUN_TIMEOUT_S
+    )
+    assert proc.returncode == 0, f"stdout:\n{proc.stdout}\nstderr:\n{proc.stderr}"
+    assert proc.stdout.lstrip().startswith("usage:"), proc.stdout
+    assert executable in proc.stdout

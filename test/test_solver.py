@@ -1,0 +1,249 @@
+"""H₂O core: Jacobians against finite differences, the single-edge update against a dense
+least-squares solve of (3.34), and the batch of all edges against Gauss–Newton."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from graphs import random_graph
+
+from h2o_slam import geometry as geo
+from h2o_slam.graph import EARTH, EdgeKind, chi2, edge_errors
+from h2o_slam.hybrid import NULL_TOLERANCE
+from h2o_slam.jacobians import endpoint_jacobians
+from h2o_slam.modes import build_solver
+from h2o_slam.solver import H2OSolver, SolverConfig
+
+UNCAPPED = SolverConfig(max_rotation_step_rad=1e9)
+
+
+def _perturb_global(R, x, k, h):
+    x, R = x.copy(), R.copy()
+    if k < 3:
+        x[k] += h
+    else:
+        w = np.zeros(3)
+        w[k - 3] = h
+        R = geo.so3_exp(w) @ R
+    return R, x
+
+
+@pytest.mark.parametrize("kind", list(EdgeKind))
+def test_endpoint_jacobians_match_finite_differences(kind):
+    rng = np.random.default_rng(int(kind))
+    for _ in range(5):
+        Ra, Rb, Rk = geo.so3_exp(rng.normal(size=(3, 3)))
+        xa, xb, tk = rng.normal(size=(3, 3))
+        kinds = np.array([kind])
+
+        def err(Ra, xa, Rb, xb, Rk=Rk, tk=tk, kinds=kinds):
+            return endpoint_jacobians(kinds, Ra[None], xa[None], Rb[None], xb[None],
+                                      Rk[None], tk[None])[0][0]
+
+        _, Ja, Jb = endpoint_jacobians(kinds, Ra[None], xa[None], Rb[None], xb[None],
+                                       Rk[None], tk[None])
+        h = 1e-6
+        for k in range(6):
+            Rp, xp = _perturb_global(Ra, xa, k, h)
+            Rm, xm = _perturb_global(Ra, xa, k, -h)
+            num_a = (err(Rp, xp, Rb, xb) - err(Rm, xm, Rb, xb)) / (2 * h)
+            Rp, xp = _perturb_global(Rb, xb, k, h)
+            Rm, xm = _perturb_global(Rb, xb, k, -h)
+            num_b = (err(Ra, xa, Rp, xp) - err(Ra, xa, Rm, xm)) / (2 * h)
+            if kind != EdgeKind.RELATIVE:
+                num_a[:] = 0.0  # a global edge's first endpoint is the fixed earth
+            assert np.allclose(Ja[0][:, k], num_a, atol=1e-7)
+            assert np.allclose(Jb[0][:, k], num_b, atol=1e-7)
+
+
+def _whitened_residuals(solver, graph):
+    R, t = solver.world_poses()
+    e = edge_errors(graph, R, t)[:, solver.dof]
+    return np.einsum("mij,mj->mi", np.array(solver.W), e)
+
+
+def _perturb_local(solver, node, k, h):
+    full = np.zeros((1, 6))
+    full[0, k] = h
+    solver.tree.t[node] += full[0, :3]
+    solver.tree.R[node] = solver.tree.R[node] @ geo.so3_exp(full[0, 3:])
+
+
+def _numeric_jacobian(solver, graph, nodes):
+    """d(whitened residuals of all edges) / d(local perturbations of nodes), central FD."""
+    h = 1e-6
+    cols = []
+    for node in nodes:
+        for k in solver.dof:
+            saved = solver.tree.R[node].copy(), solver.tree.t[node].copy()
+            _perturb_local(solver, node, k, h)
+            plus = _whitened_residuals(solver, graph)
+            solver.tree.R[node], solver.tree.t[node] = saved
+            _perturb_local(solver, node, k, -h)
+            minus = _whitened_residuals(solver, graph)
+            solver.tree.R[node], solver.tree.t[node] = saved
+            cols.append(((plus - minus) / (2 * h)).ravel())
+    return np.stack(cols, axis=1)
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_domain_jacobian_blocks_match_finite_differences(planar):
+    graph = random_graph(11, planar, n=9, loops=5, gps=2, orientation=2)
+    solver, _ = build_solver(graph)
+    nodes = np.arange(graph.num_nodes)
+    numeric = _numeric_jacobian(solver, graph, nodes)
+    p = solver.p
+    for e in range(graph.num_edges):
+        lin = solver.linearize(e)
+        rows = numeric[e * p:(e + 1) * p].reshape(p, len(nodes), p)
+        analytic = np.zeros_like(rows)
+        analytic[:, lin.domain, :] = np.swapaxes(lin.J, 0, 1)
+        assert np.allclose(analytic, rows, atol=1e-6 * max(1.0, np.abs(rows).max())), e
+        assert np.allclose(lin.r, _whitened_residuals(solver, graph)[e])
+
+
+def test_edge_root_is_outside_the_domain():
+    graph = random_graph(2, False, n=10, loops=6)
+    solver, _ = build_solver(graph)
+    for e in range(graph.num_edges):
+        path = solver.path(e)
+        assert path.root not in set(path.domain.tolist())
+        assert len(set(path.domain.tolist())) == len(path.domain)
+
+
+def _local_step(before, after):
+    (R0, t0), (R1, t1) = before, after
+    dt = t1 - t0
+    dth = geo.so3_log(np.swapaxes(R0, -1, -2) @ R1)
+    return np.concatenate([dt, dth], axis=-1)
+
+
+def _dense_hybrid_reference(lin, B_c, p):
+    d = len(lin.domain)
+    lam, U = np.linalg.eigh(B_c)
+    scale = max(lam.max(), np.abs(lin.J).max() ** 2)
+    lam = np.where(lam > NULL_TOLERANCE * scale, lam, 0.0)
+    gamma = np.zeros((d * p, d * p))
+    for i in range(d):
+        gamma[i * p:(i + 1) * p, i * p:(i + 1) * p] = np.sqrt(lam[i])[:, None] * U[i].T
+    lhs = np.vstack([np.concatenate(list(lin.J), axis=1), gamma])
+    rhs = np.concatenate([-lin.r, np.zeros(d * p)])
+    return np.linalg.lstsq(lhs, rhs, rcond=None)[0].reshape(d, p)
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_single_edge_update_equals_dense_least_squares(planar):
+    graph = random_graph(5, planar, n=10, loops=5, gps=2)
+    solver = H2OSolver.from_graph(graph, _chain_parents(graph.num_nodes), UNCAPPED)
+    for e in range(graph.num_edges):
+        lin = solver.linearize(e)
+        nodes, blocks = solver._contrib[e]
+        B_c = solver.B[lin.domain] - blocks
+        expected = _dense_hybrid_reference(lin, B_c, solver.p)
+        before = solver.tree.R[lin.domain].copy(), solver.tree.t[lin.domain].copy()
+        solver.relax(e)
+        after = solver.tree.R[lin.domain], solver.tree.t[lin.domain]
+        got = _local_step(before, after)[:, solver.dof]
+        assert np.allclose(got, expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max()), e
+
+
+def test_single_edge_update_with_singular_regularizer_blocks():
+    # Online, a new leaf's only edge is the one relaxed: its B_c block is exactly zero, and a
+    # position edge alone leaves a rank-deficient block. The update must match lstsq.
+    graph = random_graph(8, False, n=6, loops=0, gps=3)
+    solver = H2OSolver(False, UNCAPPED)
+    solver.add_pose(graph.R[0], graph.t[0])
+    for e in range(graph.num_edges):
+        solver.add_edge(int(graph.kind[e]), int(graph.a[e]), int(graph.b[e]),
+                        graph.meas_R[e], graph.meas_t[e], graph.info[e])
+    for e in range(graph.num_edges):
+        lin = solver.linearize(e)
+        B_c = solver.B[lin.domain] - solver._contrib[e][1]
+        expected = _dense_hybrid_reference(lin, B_c, solver.p)
+        before = solver.tree.R[lin.domain].copy(), solver.tree.t[lin.domain].copy()
+        solver.relax(e)
+        got = _local_step(before, (solver.tree.R[lin.domain], solver.tree.t[lin.domain]))
+        assert np.allclose(got, expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max()), e
+
+
+def _chain_parents(n):
+    return np.concatenate([[EARTH], np.arange(n - 1)])
+
+
+def _gauss_newton_reference(solver, graph):
+    free = np.flatnonzero(solver.tree.parent[: solver.num_nodes] != EARTH)
+    J = _numeric_jacobian(solver, graph, free)
+    r = _whitened_residuals(solver, graph).ravel()
+    return np.linalg.lstsq(J, -r, rcond=None)[0].reshape(len(free), solver.p), free
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_batch_of_all_edges_is_the_gauss_newton_step(planar):
+    graph = random_graph(21, planar, n=9, loops=5)
+    solver, _ = build_solver(graph, UNCAPPED)
+    expected, free = _gauss_newton_reference(solver, graph)
+
+    x_world, nodes = solver.exact_step()
+    assert np.array_equal(nodes, free)
+    assert np.allclose(x_world, expected, rtol=1e-5, atol=1e-6)
+
+    before = solver.tree.R[free].copy(), solver.tree.t[free].copy()
+    solver.relax_batch(range(graph.num_edges))
+    got = _local_step(before, (solver.tree.R[free], solver.tree.t[free]))[:, solver.dof]
+    assert np.allclose(got, x_world, rtol=1e-8, atol=1e-9)
+
+
+def test_batch_with_gps_edges_moves_the_subtree_top():
+    graph = random_graph(4, False, n=7, loops=2, gps=4)
+    solver, _ = build_solver(graph, UNCAPPED)
+    expected, _ = _gauss_newton_reference_all(solver, graph)
+    x_world, nodes = solver.exact_step()
+    assert 0 in nodes.tolist() or solver.tree.parent[0] != EARTH
+    assert np.allclose(x_world, expected, rtol=1e-5, atol=1e-6)
+
+
+def _gauss_newton_reference_all(solver, graph):
+    nodes = np.arange(solver.num_nodes)
+    J = _numeric_jacobian(solver, graph, nodes)
+    r = _whitened_residuals(solver, graph).ravel()
+    return np.linalg.lstsq(J, -r, rcond=None)[0].reshape(len(nodes), solver.p), nodes
+
+
+def test_regularizer_is_the_sum_of_edge_contributions():
+    graph = random_graph(9, False, n=10, loops=6, gps=2)
+    solver, _ = build_solver(graph)
+    for e in [3, 7, 1, 12, 5]:
+        solver.relax(e)
+    solver.relax_batch([0, 2, 4])
+    total = np.zeros_like(solver.B[: solver.num_nodes])
+    for nodes, blocks in solver._contrib:
+        np.add.at(total, nodes, blocks)
+    assert np.allclose(solver.B[: solver.num_nodes], total)
+
+
+def test_relaxing_an_edge_lowers_its_own_error():
+    graph = random_graph(13, True, n=12, loops=6)
+    solver, _ = build_solver(graph)
+    for e in range(graph.num_edges):
+        before = np.sum(solver.linearize(e).r ** 2)
+        solver.relax(e)
+        assert np.sum(solver.linearize(e).r ** 2) <= before + 1e-12
+
+
+def test_rotation_step_is_capped():
+    graph = random_graph(17, False, n=6, loops=3)
+    solver, _ = build_solver(graph, SolverConfig(max_rotation_step_rad=1e-3))
+    for e in range(graph.num_edges):
+        lin = solver.linearize(e)
+        before = solver.tree.R[lin.domain].copy(), solver.tree.t[lin.domain].copy()
+        solver.relax(e)
+        step = _local_step(before, (solver.tree.R[lin.domain], solver.tree.t[lin.domain]))
+        assert np.linalg.norm(step[:, 3:], axis=1).max() <= 1e-3 + 1e-12
+
+
+def test_world_poses_survive_a_solver_round_trip():
+    graph = random_graph(3, False, n=10, loops=4)
+    solver, _ = build_solver(graph, init="input")
+    R, t = solver.world_poses()
+    assert np.allclose(R, graph.R) and np.allclose(t, graph.t)
+    assert np.isclose(solver.chi2(graph), chi2(graph))
