@@ -51,7 +51,7 @@ class SolveResult:
         return self.chi2_per_pass[-1] if self.chi2_per_pass else self.chi2_initial
 
 
-INITS = ("input", "tree")
+INITS = ("input", "tree", "lago")
 
 
 def build_solver(
@@ -61,7 +61,8 @@ def build_solver(
 
     ``init="input"`` starts from the graph's estimate (its vertices, or the odometry chain);
     ``init="tree"`` starts, as the thesis does (3.4.2), from the tree edges' measurements
-    concatenated down from the root, so that every tree edge starts with zero error.
+    concatenated down from the root, so that every tree edge starts with zero error;
+    ``init="lago"`` starts from the LAGO linear approximation (planar graphs only).
 
     Returns the solver and the graph holding the starting estimate.
     """
@@ -71,6 +72,10 @@ def build_solver(
     parents = spanning_parents(graph.num_nodes, graph.a[rel], graph.b[rel])
     if init == "tree":
         graph = graph.with_estimate(*tree_estimate(graph, parents))
+    elif init == "lago":
+        from h2o_slam.lago import lago_estimate
+
+        graph = graph.with_estimate(*lago_estimate(graph))
     return H2OSolver.from_graph(graph, parents, config), graph
 
 
@@ -176,6 +181,14 @@ def _damped_step(
         solver.tree.t[:] = saved_t
         damping = max(1e-6, damping * 10.0)
     return None, current
+
+
+def solve_lago(graph: PoseGraph) -> SolveResult:
+    """LAGO as a solver of its own: one linear solve, one χ² entry (planar graphs only)."""
+    from h2o_slam.lago import lago_estimate
+
+    R, t = lago_estimate(graph)
+    return SolveResult(R, t, chi2(graph), [chi2(graph, R, t)])
 
 
 def solve_online(

@@ -21,9 +21,17 @@ import numpy as np
 from h2o_slam.errors import H2OError
 from h2o_slam.g2o import read_g2o, write_g2o
 from h2o_slam.graph import PoseGraph
-from h2o_slam.modes import INITS, SolveResult, solve_exact, solve_offline, solve_online
+from h2o_slam.modes import (
+    INITS,
+    SolveResult,
+    solve_exact,
+    solve_lago,
+    solve_offline,
+    solve_online,
+)
 
 MODES = ("offline", "online", "exact")
+SOLVERS = ("h2o", "lago")
 DEFAULT_PASSES = {"offline": 10, "online": 0, "exact": 20}
 
 
@@ -32,6 +40,7 @@ class SolveReport:
     """What ``--report`` writes (JSON)."""
 
     input: str
+    solver: str
     mode: str
     init: str
     passes: int
@@ -50,26 +59,36 @@ def solve_file(
     mode: str = "offline",
     passes: int | None = None,
     init: str = "tree",
+    solver: str = "h2o",
 ) -> SolveReport:
     """Read ``input_path``, solve it in ``mode``, write the solution to ``output_path``.
 
     ``passes``: offline passes (offline mode), offline passes after the online pass (online
     mode), or the most Gauss–Newton iterations (exact mode); ``None`` takes the mode's default.
+    ``init``: ``tree`` (the thesis' start: tree edges concatenated from the root), ``input``
+    (the file's vertices, or its odometry chain) or ``lago`` (planar graphs); online mode
+    always grows its tree from the arriving edges. ``solver="lago"`` runs LAGO alone.
 
     Raises:
         H2OError: the input cannot be read or solved (the message names file and line).
         OSError: the files cannot be read or written.
     """
+    if solver not in SOLVERS:
+        raise ValueError(f"unknown solver {solver!r}; choose one of {', '.join(SOLVERS)}")
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; choose one of {', '.join(MODES)}")
     passes = DEFAULT_PASSES[mode] if passes is None else passes
     graph = read_g2o(input_path)
     start = time.perf_counter()
-    result = _solve(graph, mode, passes, init)
+    if solver == "lago":
+        mode, init, passes = "lago", "input", 0
+        result = solve_lago(graph)
+    else:
+        result = _solve(graph, mode, passes, init)
     wall_s = time.perf_counter() - start
     write_g2o(output_path, graph, result.R, result.t)
     return SolveReport(
-        input=str(input_path), mode=mode, init="tree" if mode == "online" else init,
+        input=str(input_path), solver=solver, mode=mode, init="tree" if mode == "online" else init,
         passes=passes,
         nodes=graph.num_nodes, edges=graph.num_edges,
         chi2_initial=result.chi2_initial, chi2_final=result.chi2_final,
@@ -107,10 +126,13 @@ def build_parser() -> argparse.ArgumentParser:
                         help="offline passes (default 10); online: extra offline passes "
                              "after the online pass (default 0); exact: most iterations "
                              "(default 20)")
+    parser.add_argument("--solver", choices=SOLVERS, default="h2o",
+                        help="h2o (default) or lago: the linear approximation alone "
+                             "(planar graphs; --mode, --passes and --init are ignored)")
     parser.add_argument("--init", choices=INITS, default="tree",
                         help="starting estimate: tree (tree edges concatenated from the root, "
                              "as in the thesis) or input (the file's vertices, or its odometry "
-                             "chain when it has none); default: tree")
+                             "chain when it has none) or lago (planar graphs); default: tree")
     parser.add_argument("--report", type=Path, default=None, help="write a JSON report here")
     return parser
 
@@ -122,7 +144,9 @@ def main(argv: list[str] | None = None) -> int:
         print("h2o-solve: --passes must be non-negative", file=sys.stderr)
         return 2
     try:
-        report = solve_file(args.input, args.output, args.mode, args.passes, args.init)
+        report = solve_file(
+            args.input, args.output, args.mode, args.passes, args.init, args.solver
+        )
     except H2OError as err:
         print(f"h2o-solve: {err}", file=sys.stderr)
         return 1
