@@ -17,6 +17,8 @@ Conventions (DESIGN §2), stated once here for the whole package:
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -107,6 +109,31 @@ def so3_right_jacobian_inv(w: Array) -> Array:
     k = hat(w)
     eye = np.broadcast_to(np.eye(3), k.shape)
     return eye + 0.5 * k + coef[..., None, None] * (k @ k)
+
+
+def so3_log_one(R: Array) -> Array:
+    """:func:`so3_log` of a single ``(3, 3)`` matrix, with less per-call overhead."""
+    cos = min(1.0, max(-1.0, (R[0, 0] + R[1, 1] + R[2, 2] - 1.0) / 2.0))
+    vee = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if cos < -0.99:
+        return so3_log(R)
+    sin = 0.5 * math.sqrt(vee[0] ** 2 + vee[1] ** 2 + vee[2] ** 2)
+    theta = math.atan2(sin, cos)
+    if theta < _SMALL_ANGLE:
+        return (0.5 + theta**2 / 12.0) * vee
+    return (theta / (2.0 * sin)) * vee
+
+
+def so3_right_jacobian_inv_one(w: Array) -> Array:
+    """:func:`so3_right_jacobian_inv` of a single rotation vector ``(3,)``."""
+    theta2 = float(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
+    theta = math.sqrt(theta2)
+    if theta < 1e-4:
+        coef = 1.0 / 12.0 + theta2 / 720.0
+    else:
+        coef = 1.0 / theta2 - (1.0 + math.cos(theta)) / (2.0 * theta * math.sin(theta))
+    k = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    return np.eye(3) + 0.5 * k + coef * (k @ k)
 
 
 def orthonormalize(R: Array) -> Array:

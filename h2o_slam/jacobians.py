@@ -56,6 +56,36 @@ def endpoint_jacobians(
     return e, Ja, Jb
 
 
+def endpoint_jacobians_one(
+    kind: int, Ra: Array, xa: Array, Rb: Array, xb: Array, Rk: Array, tk: Array
+) -> tuple[Array, Array, Array]:
+    """:func:`endpoint_jacobians` of a single edge (the per-edge hot path, without batching
+    overhead): ``(e, J_a, J_b)`` with shapes ``(6,)``, ``(6, 6)``, ``(6, 6)``."""
+    e = np.zeros(6)
+    Ja = np.zeros((6, 6))
+    Jb = np.zeros((6, 6))
+    if kind == EdgeKind.RELATIVE:
+        d = xb - xa
+        RkRa = Rk.T @ Ra.T
+        rot = geo.so3_log_one(RkRa @ Rb)
+        e[:3] = RkRa @ d - Rk.T @ tk
+        e[3:] = rot
+        jr_rbT = geo.so3_right_jacobian_inv_one(rot) @ Rb.T
+        Jb[:3, :3] = RkRa
+        Jb[3:, 3:] = jr_rbT
+        Ja[:3, :3] = -RkRa
+        Ja[:3, 3:] = RkRa @ np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
+        Ja[3:, 3:] = -jr_rbT
+    elif kind == EdgeKind.POSITION:
+        e[:3] = xb - tk
+        Jb[:3, :3] = np.eye(3)
+    else:
+        rot = geo.so3_log_one(Rk.T @ Rb)
+        e[3:] = rot
+        Jb[3:, 3:] = geo.so3_right_jacobian_inv_one(rot) @ Rb.T
+    return e, Ja, Jb
+
+
 def _relative(
     Ra: Array, xa: Array, Rb: Array, xb: Array, Rk: Array, tk: Array
 ) -> tuple[Array, Array, Array]:

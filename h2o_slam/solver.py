@@ -33,7 +33,7 @@ from h2o_slam.errors import GraphError
 from h2o_slam.geometry import Array
 from h2o_slam.graph import EARTH, EdgeKind, PoseGraph, chi2
 from h2o_slam.hybrid import solve_hybrid
-from h2o_slam.jacobians import chain_jacobians, endpoint_jacobians
+from h2o_slam.jacobians import chain_jacobians, endpoint_jacobians, endpoint_jacobians_one
 from h2o_slam.tree import EdgePath, PoseTree
 
 
@@ -223,15 +223,13 @@ class H2OSolver:
         path = self.path(edge)
         Ra, xa, Rpar_a, R_A, x_A = self._chain(path.a_chain)
         Rb, xb, Rpar_b, R_B, x_B = self._chain(path.b_chain)
-        e, Ja, Jb = endpoint_jacobians(
-            np.array([self.kind[edge]]), Ra[None], xa[None], Rb[None], xb[None],
-            self.meas_R[edge][None], self.meas_t[edge][None],
-        )
-        blocks = [Ja[0] @ chain_jacobians(Rpar_a, R_A, x_A, xa)] if len(path.a_chain) else []
-        blocks.append(Jb[0] @ chain_jacobians(Rpar_b, R_B, x_B, xb))
+        e, Ja, Jb = endpoint_jacobians_one(
+            self.kind[edge], Ra, xa, Rb, xb, self.meas_R[edge], self.meas_t[edge])
+        blocks = [Ja @ chain_jacobians(Rpar_a, R_A, x_A, xa)] if len(path.a_chain) else []
+        blocks.append(Jb @ chain_jacobians(Rpar_b, R_B, x_B, xb))
         J = np.concatenate(blocks)[:, self.dof[:, None], self.dof[None, :]]
         W = self.W[edge]
-        return Linearization(path.domain, W @ J, W @ e[0, self.dof])
+        return Linearization(path.domain, W @ J, W @ e[self.dof])
 
     def _chain(self, chain: np.ndarray) -> tuple[Array, Array, Array, Array, Array]:
         """End pose, parents' rotations and poses of a chain, in its root's frame."""
@@ -315,7 +313,8 @@ class H2OSolver:
         full *= scale
         tree = self.tree
         tree.t[nodes] += full[:, :3]
-        tree.R[nodes] = tree.R[nodes] @ geo.so3_exp(full[:, 3:])
+        turn = geo.yaw_to_matrix(full[:, 5]) if self.planar else geo.so3_exp(full[:, 3:])
+        tree.R[nodes] = tree.R[nodes] @ turn
 
     def exact_step(self, damping: float = 0.0) -> tuple[Array, np.ndarray]:
         """The Gauss–Newton step of all edges as a local step per node, without applying it.

@@ -272,3 +272,13 @@ def test_wrap_angle_edges() -> None:
     values = geo.wrap_angle(np.array([np.pi, -np.pi, below, 3 * np.pi, 0.0, -0.0]))
     assert np.all(values >= -np.pi) and np.all(values < np.pi)
     np.testing.assert_allclose(values[:4], -np.pi, atol=1e-15)
+
+
+@settings(max_examples=200, deadline=None)
+@given(w=st.lists(st.floats(-3.1, 3.1), min_size=3, max_size=3))
+def test_single_versions_match_batched(w):
+    w = np.array(w)
+    R = geo.so3_exp(w)
+    assert np.allclose(geo.so3_log_one(R), geo.so3_log(R), atol=1e-12)
+    assert np.allclose(geo.so3_right_jacobian_inv_one(w), geo.so3_right_jacobian_inv(w),
+                       atol=1e-9)

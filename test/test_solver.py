@@ -144,7 +144,7 @@ def test_single_edge_update_equals_dense_least_squares(planar):
         solver.relax(e)
         after = solver.tree.R[lin.domain], solver.tree.t[lin.domain]
         got = _local_step(before, after)[:, solver.dof]
-        assert np.allclose(got, expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max()), e
+        assert np.allclose(got, expected, rtol=1e-9, atol=1e-14 + 1e-9 * np.abs(expected).max()), e
 
 
 def test_single_edge_update_with_singular_regularizer_blocks():
@@ -163,7 +163,7 @@ def test_single_edge_update_with_singular_regularizer_blocks():
         before = solver.tree.R[lin.domain].copy(), solver.tree.t[lin.domain].copy()
         solver.relax(e)
         got = _local_step(before, (solver.tree.R[lin.domain], solver.tree.t[lin.domain]))
-        assert np.allclose(got, expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max()), e
+        assert np.allclose(got, expected, rtol=1e-9, atol=1e-14 + 1e-9 * np.abs(expected).max()), e
 
 
 def _chain_parents(n):
