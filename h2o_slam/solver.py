@@ -29,6 +29,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from h2o_slam import geometry as geo
+from h2o_slam import interpolate
 from h2o_slam.errors import GraphError
 from h2o_slam.geometry import Array
 from h2o_slam.graph import EARTH, EdgeKind, PoseGraph, chi2
@@ -69,6 +70,7 @@ class Linearization:
     domain: np.ndarray  # (d,) node indices
     J: Array  # (d, p, p) whitened Jacobian blocks w.r.t. local perturbations
     r: Array  # (p,) whitened residual
+    len_a: int  # the domain is the a-chain (this long) followed by the b-chain
 
 
 def whitening(info: Array, dof: np.ndarray) -> Array:
@@ -98,6 +100,11 @@ class H2OSolver:
         self.meas_R: list[Array] = []
         self.meas_t: list[Array] = []
         self.W: list[Array] = []
+        self.info: list[Array] = []
+        #: Per node: the edge that ties it to its parent (-1 for subtree tops), and whether
+        #: that edge measures parent → node (True) or node → parent (False).
+        self.tree_edge = np.full(16, -1, dtype=np.int64)
+        self.tree_edge_forward = np.ones(16, dtype=bool)
         self._paths: list[EdgePath | None] = []
         self._contrib: list[tuple[np.ndarray, Array] | None] = []
         self._gps_at: dict[int, list[int]] = {}
@@ -137,9 +144,11 @@ class H2OSolver:
             R_inv, t_inv = geo.inverse(meas_R, meas_t)
             self.tree.add_node(b, R_inv, t_inv)
             self._grow_B()
+            self._set_tree_edge(n, self.num_edges, forward=False)
         elif kind == EdgeKind.RELATIVE and b == n and 0 <= a < n:
             self.tree.add_node(a, meas_R, meas_t)
             self._grow_B()
+            self._set_tree_edge(n, self.num_edges, forward=True)
         elif kind != EdgeKind.RELATIVE and b == n:
             raise GraphError("a GPS or orientation edge cannot create a node; add it first")
         if not (0 <= b < self.num_nodes) or not (a == EARTH or 0 <= a < self.num_nodes):
@@ -161,7 +170,8 @@ class H2OSolver:
         self.b.append(int(b))
         self.meas_R.append(np.asarray(meas_R, dtype=float))
         self.meas_t.append(np.asarray(meas_t, dtype=float))
-        self.W.append(whitening(np.asarray(info, dtype=float), self.dof))
+        self.info.append(np.asarray(info, dtype=float))
+        self.W.append(whitening(self.info[-1], self.dof))
         self._paths.append(None)
         self._contrib.append(None)
         if kind != EdgeKind.RELATIVE:
@@ -170,8 +180,15 @@ class H2OSolver:
 
     def _grow_B(self) -> None:
         if self.tree.n > len(self.B):
-            extra = np.zeros((len(self.B), self.p, self.p))
-            self.B = np.concatenate([self.B, extra])
+            extra = len(self.B)
+            self.B = np.concatenate([self.B, np.zeros((extra, self.p, self.p))])
+            self.tree_edge = np.concatenate([self.tree_edge, np.full(extra, -1)])
+            self.tree_edge_forward = np.concatenate(
+                [self.tree_edge_forward, np.ones(extra, dtype=bool)])
+
+    def _set_tree_edge(self, node: int, edge: int, forward: bool) -> None:
+        self.tree_edge[node] = edge
+        self.tree_edge_forward[node] = forward
 
     @classmethod
     def from_graph(
@@ -182,6 +199,7 @@ class H2OSolver:
         solver = cls(graph.planar, config)
         solver.tree = PoseTree.from_parents(parents, graph.R, graph.t)
         solver.B = np.zeros((graph.num_nodes, solver.p, solver.p))
+        solver.tree_edge, solver.tree_edge_forward = _tree_edges(graph, parents)
         for e in range(graph.num_edges):
             solver._append_edge(
                 int(graph.kind[e]), int(graph.a[e]), int(graph.b[e]),
@@ -229,7 +247,7 @@ class H2OSolver:
         blocks.append(Jb @ chain_jacobians(Rpar_b, R_B, x_B, xb))
         J = np.concatenate(blocks)[:, self.dof[:, None], self.dof[None, :]]
         W = self.W[edge]
-        return Linearization(path.domain, W @ J, W @ e[self.dof])
+        return Linearization(path.domain, W @ J, W @ e[self.dof], len(path.a_chain))
 
     def _chain(self, chain: np.ndarray) -> tuple[Array, Array, Array, Array, Array]:
         """End pose, parents' rotations and poses of a chain, in its root's frame."""
@@ -242,21 +260,87 @@ class H2OSolver:
 
     # -- updates ------------------------------------------------------------------------------
 
-    def relax(self, edge: int) -> None:
-        """Single-edge hybrid-Hessian update of ``edge`` (thesis 3.3.5)."""
+    def relax(self, edge: int, d_max: int | None = None, scale: float | None = None) -> None:
+        """Single-edge hybrid-Hessian update of ``edge`` (thesis 3.3.5).
+
+        With ``d_max`` smaller than the domain, interpolated solving (3.3.6): solve for at most
+        ``d_max`` nodes with merged constraints and spread their change over the rest.
+        ``scale`` replaces the temperature (the π/8 rotation cap still applies).
+        """
         lin = self.linearize(edge)
-        old_nodes, old_blocks = self._contrib[edge]  # type: ignore[misc]
-        B_c = self.B[lin.domain]
-        if np.array_equal(old_nodes, lin.domain):
-            B_c -= old_blocks
-        else:  # the tree changed since this edge last contributed
-            self.B[old_nodes] -= old_blocks
-            B_c = self.B[lin.domain]
-        x = solve_hybrid(lin.J, lin.r, B_c)
-        self._apply(lin.domain, x)
+        B_c = self._regularizer_without(edge, lin.domain)
+        if d_max is None or len(lin.domain) <= d_max:
+            x = solve_hybrid(lin.J, lin.r, B_c)
+            self._apply(lin.domain, x, self._step_scale(x, scale))
+        else:
+            self._relax_interpolated(lin, B_c, d_max, scale)
         contrib = _gram(lin.J)
         self.B[lin.domain] = B_c + contrib
         self._contrib[edge] = (lin.domain, contrib)
+
+    def _regularizer_without(self, edge: int, domain: np.ndarray) -> Array:
+        """``B_c``: the regularizer blocks of ``domain`` without ``edge``'s own contribution."""
+        old_nodes, old_blocks = self._contrib[edge]  # type: ignore[misc]
+        if np.array_equal(old_nodes, domain):
+            return self.B[domain] - old_blocks
+        # The tree changed since this edge last contributed.
+        self.B[old_nodes] -= old_blocks
+        return self.B[domain]
+
+    def _relax_interpolated(
+        self, lin: Linearization, B_c: Array, d_max: int, scale: float | None
+    ) -> None:
+        dom = lin.domain
+        sel = interpolate.select(lin.len_a, len(dom) - lin.len_a, d_max)
+        B_sel = B_c[sel.kept]
+        merged = np.flatnonzero(sel.lengths > 1)
+        if len(merged):
+            B_sel[merged] += self._merge_adjustment(lin, sel, merged)
+        x = solve_hybrid(lin.J[sel.kept], lin.r, B_sel)
+        step = np.zeros((len(x), 6))
+        step[:, self.dof] = x * self._step_scale(x, scale)
+        R_new, t_new = interpolate.distribute(
+            sel, self.tree.R[dom], self.tree.t[dom], step, self._compliance(B_c))
+        self.tree.R[dom] = R_new
+        self.tree.t[dom] = t_new
+
+    def _merge_adjustment(
+        self, lin: Linearization, sel: interpolate.Selection, merged: np.ndarray
+    ) -> Array:
+        """``−J_αᵀJ_α + J_βᵀJ_β`` (eq. 3.36) for the kept nodes ending merged segments.
+
+        Segments that contain a subtree top (tied to the earth by no edge) keep ``B``.
+        """
+        dom = lin.domain
+        edges = self.tree_edge[dom]
+        forward = self.tree_edge_forward[dom]
+        k_R = np.array([self.meas_R[e] if e >= 0 else np.eye(3) for e in edges])
+        k_t = np.array([self.meas_t[e] if e >= 0 else np.zeros(3) for e in edges])
+        S = np.array([self.info[e] if e >= 0 else np.zeros((6, 6)) for e in edges])
+        back = ~forward & (edges >= 0)
+        k_R[back], k_t[back] = geo.inverse(k_R[back], k_t[back])
+        rot = np.zeros((int(back.sum()), 6, 6))
+        rot[:, :3, :3] = rot[:, 3:, 3:] = k_R[back]
+        # A reversed edge's error lives in the parent's frame; turn it into the node's.
+        S[back] = np.swapaxes(rot, -1, -2) @ S[back] @ rot
+        sub = interpolate.Selection(sel.kept[merged], sel.start[merged])
+        R_b, t_b, S_b = interpolate.merge_segments(sub, k_R, k_t, S)
+        W_b = whitening(S_b, self.dof)
+        adjust = interpolate.merged_stiffness(
+            sub, self.tree.R[dom], self.tree.t[dom], R_b, t_b, W_b, self.dof)
+        for j, pos in enumerate(sub.kept):
+            alpha = self._contrib[int(edges[pos])] if edges[pos] >= 0 else None
+            has_top = bool(np.any(edges[sub.start[j]:pos + 1] < 0))
+            if has_top or alpha is None or not np.array_equal(alpha[0], dom[pos:pos + 1]):
+                adjust[j] = 0.0
+            else:
+                adjust[j] -= alpha[1][0]
+        return adjust
+
+    def _compliance(self, B: Array) -> Array:
+        """Distribution weights ``1 / diag(B)`` over the rotational coordinates (TORO)."""
+        rot = np.einsum("dii->di", B)[:, self.p // 2:].sum(axis=1) if self.p == 6 else B[:, 2, 2]
+        return 1.0 / (rot + 1e-9 * max(float(rot.max(initial=0.0)), 1e-12))
 
     def relax_batch(self, edges: list[int] | np.ndarray) -> None:
         """Batch update of a set of edges (thesis 3.3.7, eq. 3.40–3.42).
@@ -278,7 +362,7 @@ class H2OSolver:
             B_c = self.B[nodes]
         J, r = self._stack(lins, nodes)
         x = _solve_regularized(J, r, B_c).reshape(len(nodes), self.p)
-        self._apply(nodes, x)
+        self._apply(nodes, x, self._step_scale(x))
         self.B[nodes] = B_c
         for e, lin in zip(edges, lins, strict=True):
             contrib = _gram(lin.J)
@@ -302,14 +386,18 @@ class H2OSolver:
         )
         return J, np.concatenate([lin.r for lin in lins])
 
-    def _apply(self, nodes: np.ndarray, x: Array, scale: float | None = None) -> None:
-        """Apply a local step ``x`` (``(d, p)``) to ``nodes``, scaled by τ and capped."""
+    def _step_scale(self, x: Array, scale: float | None = None) -> float:
+        """τ (or ``scale``), reduced so that no node turns by more than the cap (3.3.11)."""
+        tau = self.temperature if scale is None else scale
+        rot = x[:, 2:] if self.planar else x[:, 3:]
+        largest = float(np.max(np.linalg.norm(rot, axis=1), initial=0.0))
+        cap = self.config.max_rotation_step_rad
+        return tau if largest * tau <= cap else cap / largest
+
+    def _apply(self, nodes: np.ndarray, x: Array, scale: float) -> None:
+        """Apply a local step ``x`` (``(d, p)``) to ``nodes``, scaled by ``scale``."""
         full = np.zeros((len(nodes), 6))
         full[:, self.dof] = x
-        if scale is None:
-            largest = float(np.max(np.linalg.norm(full[:, 3:], axis=1), initial=0.0))
-            cap = self.config.max_rotation_step_rad
-            scale = self.temperature if largest * self.temperature <= cap else cap / largest
         full *= scale
         tree = self.tree
         tree.t[nodes] += full[:, :3]
@@ -411,6 +499,23 @@ class H2OSolver:
             found.extend(e for e in attached if self.kind[e] == EdgeKind.POSITION)
             node = int(self.tree.parent[node])
         return found[:count]
+
+
+def _tree_edges(graph: PoseGraph, parents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each node, an edge joining it to its parent and whether it points parent → node."""
+    n = graph.num_nodes
+    edge = np.full(n, -1, dtype=np.int64)
+    forward = np.ones(n, dtype=bool)
+    rel = np.flatnonzero(graph.kind == EdgeKind.RELATIVE)
+    a, b = graph.a[rel], graph.b[rel]
+    up = (parents[a] == b) & (parents[b] != a)
+    edge[a[up]] = rel[up]
+    forward[a[up]] = False
+    down = parents[b] == a
+    # Reversed order so that the first matching edge wins the assignment.
+    edge[b[down][::-1]] = rel[down][::-1]
+    forward[b[down]] = True
+    return edge, forward
 
 
 def _gram(J: Array) -> Array:
