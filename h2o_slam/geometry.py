@@ -136,6 +136,18 @@ def so3_right_jacobian_inv_one(w: Array) -> Array:
     return np.eye(3) + 0.5 * k + coef * (k @ k)
 
 
+def renormalize(R: Array) -> Array:
+    """One Newton step of the polar decomposition, ``R (3I − RᵀR) / 2``, for nearly
+    orthonormal ``R``: an error ``ε`` in ``RᵀR`` becomes ``O(ε²)``.
+
+    Products of many rotations drift away from SO(3) one rounding at a time; a chain
+    recomposed from drifted matrices drifts faster, so every update that rebuilds local
+    rotations from products applies this.
+    """
+    gram = np.swapaxes(R, -1, -2) @ R
+    return R @ (1.5 * np.eye(3) - 0.5 * gram)
+
+
 def orthonormalize(R: Array) -> Array:
     """Nearest rotation matrices (polar decomposition through SVD)."""
     u, _, vt = np.linalg.svd(R)

@@ -58,8 +58,11 @@ def select(len_a: int, len_b: int, d_max: int) -> Selection:
     if total <= d_max:
         kept = np.arange(total)
         return Selection(kept, kept.copy())
-    k_a = 0 if len_a == 0 else min(len_a, max(1, round(d_max * len_a / total)))
-    k_b = min(len_b, max(1, d_max - k_a)) if len_b else 0
+    if len_a and len_b:
+        k_a = min(len_a, max(1, min(d_max - 1, round(d_max * len_a / total))))
+        k_b = min(len_b, max(1, d_max - k_a))
+    else:
+        k_a, k_b = min(len_a, d_max), min(len_b, d_max)
     kept_a, start_a = _even(len_a, k_a, 0)
     kept_b, start_b = _even(len_b, k_b, len_a)
     return Selection(np.concatenate([kept_a, kept_b]), np.concatenate([start_a, start_b]))
@@ -162,7 +165,7 @@ def distribute(
     out_t = t_loc.copy()
     offsets = np.arange(len(valid))[:, None]
     idx = sel.start[None, :] + offsets
-    out_R[idx[valid]] = local_R[valid]
+    out_R[idx[valid]] = geo.renormalize(local_R[valid])
     out_t[idx[valid]] = local_t[valid]
     return out_R, out_t
 

@@ -402,7 +402,7 @@ class H2OSolver:
         tree = self.tree
         tree.t[nodes] += full[:, :3]
         turn = geo.yaw_to_matrix(full[:, 5]) if self.planar else geo.so3_exp(full[:, 3:])
-        tree.R[nodes] = tree.R[nodes] @ turn
+        tree.R[nodes] = geo.renormalize(tree.R[nodes] @ turn)
 
     def exact_step(self, damping: float = 0.0) -> tuple[Array, np.ndarray]:
         """The Gauss–Newton step of all edges as a local step per node, without applying it.

@@ -282,3 +282,11 @@ def test_single_versions_match_batched(w):
     assert np.allclose(geo.so3_log_one(R), geo.so3_log(R), atol=1e-12)
     assert np.allclose(geo.so3_right_jacobian_inv_one(w), geo.so3_right_jacobian_inv(w),
                        atol=1e-9)
+
+
+def test_renormalize_squares_the_drift():
+    rng = np.random.default_rng(0)
+    R = geo.so3_exp(rng.normal(size=(20, 3))) + 1e-6 * rng.normal(size=(20, 3, 3))
+    drift = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max()
+    fixed = geo.renormalize(R)
+    assert np.abs(np.swapaxes(fixed, 1, 2) @ fixed - np.eye(3)).max() < 10 * drift**2

@@ -125,3 +125,12 @@ def test_interpolated_offline_passes_still_converge():
         for e in range(solver.num_edges):
             solver.relax(e, d_max=4)
     assert solver.chi2(graph) < 0.5 * start
+
+
+def test_repeated_interpolated_updates_keep_rotations_orthonormal():
+    solver, _ = _chain_solver(False, n=60, loops=10, seed=9)
+    for _ in range(3):
+        for e in range(solver.num_edges):
+            solver.relax(e, d_max=3)
+    R = solver.tree.R[: solver.num_nodes]
+    assert np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max() < 1e-12
