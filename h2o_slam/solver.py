@@ -94,13 +94,7 @@ class H2OSolver:
         self.tree = PoseTree()
         self.B = np.zeros((16, self.p, self.p))
         self.temperature = 1.0
-        self.kind: list[int] = []
-        self.a: list[int] = []
-        self.b: list[int] = []
-        self.meas_R: list[Array] = []
-        self.meas_t: list[Array] = []
-        self.W: list[Array] = []
-        self.info: list[Array] = []
+        self._edges = EdgeTable(self.p)
         #: Per node: the edge that ties it to its parent (-1 for subtree tops), and whether
         #: that edge measures parent → node (True) or node → parent (False).
         self.tree_edge = np.full(16, -1, dtype=np.int64)
@@ -119,7 +113,43 @@ class H2OSolver:
     @property
     def num_edges(self) -> int:
         """Edges added so far."""
-        return len(self.kind)
+        return self._edges.m
+
+    # Views of the edge table, valid until the next edge is added.
+    @property
+    def kind(self) -> np.ndarray:
+        """:class:`EdgeKind` of each edge."""
+        return self._edges.kind[: self._edges.m]
+
+    @property
+    def a(self) -> np.ndarray:
+        """First endpoint of each edge (:data:`EARTH` for global edges)."""
+        return self._edges.a[: self._edges.m]
+
+    @property
+    def b(self) -> np.ndarray:
+        """Second endpoint of each edge."""
+        return self._edges.b[: self._edges.m]
+
+    @property
+    def meas_R(self) -> Array:
+        """Measured rotation of each edge."""
+        return self._edges.meas_R[: self._edges.m]
+
+    @property
+    def meas_t(self) -> Array:
+        """Measured translation of each edge."""
+        return self._edges.meas_t[: self._edges.m]
+
+    @property
+    def info(self) -> Array:
+        """Information matrix of each edge (6×6, error order)."""
+        return self._edges.info[: self._edges.m]
+
+    @property
+    def W(self) -> Array:
+        """Whitening ``W`` (``WᵀW = S`` in the coordinates in use) of each edge."""
+        return self._edges.W[: self._edges.m]
 
     def add_pose(self, R_world: Array, t_world: Array) -> int:
         """Add a node hanging from the earth at a world pose (a new subtree)."""
@@ -164,14 +194,7 @@ class H2OSolver:
     def _append_edge(
         self, kind: int, a: int, b: int, meas_R: Array, meas_t: Array, info: Array
     ) -> int:
-        edge = self.num_edges
-        self.kind.append(int(kind))
-        self.a.append(int(a))
-        self.b.append(int(b))
-        self.meas_R.append(np.asarray(meas_R, dtype=float))
-        self.meas_t.append(np.asarray(meas_t, dtype=float))
-        self.info.append(np.asarray(info, dtype=float))
-        self.W.append(whitening(self.info[-1], self.dof))
+        edge = self._edges.append(kind, a, b, meas_R, meas_t, info, self.dof)
         self._paths.append(None)
         self._contrib.append(None)
         if kind != EdgeKind.RELATIVE:
@@ -218,7 +241,7 @@ class H2OSolver:
         """The tree path of an edge (cached until the tree changes)."""
         cached = self._paths[edge]
         if cached is None:
-            cached = self.tree.path(self.a[edge], self.b[edge])
+            cached = self.tree.path(int(self._edges.a[edge]), int(self._edges.b[edge]))
             self._paths[edge] = cached
         return cached
 
@@ -241,12 +264,13 @@ class H2OSolver:
         path = self.path(edge)
         Ra, xa, Rpar_a, R_A, x_A = self._chain(path.a_chain)
         Rb, xb, Rpar_b, R_B, x_B = self._chain(path.b_chain)
+        table = self._edges
         e, Ja, Jb = endpoint_jacobians_one(
-            self.kind[edge], Ra, xa, Rb, xb, self.meas_R[edge], self.meas_t[edge])
+            int(table.kind[edge]), Ra, xa, Rb, xb, table.meas_R[edge], table.meas_t[edge])
         blocks = [Ja @ chain_jacobians(Rpar_a, R_A, x_A, xa)] if len(path.a_chain) else []
         blocks.append(Jb @ chain_jacobians(Rpar_b, R_B, x_B, xb))
         J = np.concatenate(blocks)[:, self.dof[:, None], self.dof[None, :]]
-        W = self.W[edge]
+        W = table.W[edge]
         return Linearization(path.domain, W @ J, W @ e[self.dof], len(path.a_chain))
 
     def _chain(self, chain: np.ndarray) -> tuple[Array, Array, Array, Array, Array]:
@@ -314,9 +338,10 @@ class H2OSolver:
         dom = lin.domain
         edges = self.tree_edge[dom]
         forward = self.tree_edge_forward[dom]
-        k_R = np.array([self.meas_R[e] if e >= 0 else np.eye(3) for e in edges])
-        k_t = np.array([self.meas_t[e] if e >= 0 else np.zeros(3) for e in edges])
-        S = np.array([self.info[e] if e >= 0 else np.zeros((6, 6)) for e in edges])
+        top = edges < 0
+        k_R = np.where(top[:, None, None], np.eye(3), self.meas_R[edges])
+        k_t = np.where(top[:, None], 0.0, self.meas_t[edges])
+        S = np.where(top[:, None, None], 0.0, self.info[edges])
         back = ~forward & (edges >= 0)
         k_R[back], k_t[back] = geo.inverse(k_R[back], k_t[back])
         rot = np.zeros((int(back.sum()), 6, 6))
@@ -431,16 +456,14 @@ class H2OSolver:
         self._apply(nodes, x, scale=1.0)
 
     def _world_system(self, R: Array, x: Array) -> tuple[sp.csr_matrix, Array, np.ndarray]:
-        kind = np.array(self.kind)
-        a = np.array(self.a)
-        b = np.array(self.b)
+        kind, a, b = self.kind, self.a, self.b
         glob = a == EARTH
         a_idx = np.where(glob, 0, a)
         Ra = np.where(glob[:, None, None], np.eye(3), R[a_idx])
         xa = np.where(glob[:, None], 0.0, x[a_idx])
         e, Ja, Jb = endpoint_jacobians(
-            kind, Ra, xa, R[b], x[b], np.array(self.meas_R), np.array(self.meas_t))
-        W = np.array(self.W)
+            kind, Ra, xa, R[b], x[b], self.meas_R, self.meas_t)
+        W = self.W
         dof = self.dof
         r = np.einsum("mij,mj->mi", W, e[:, dof]).ravel()
         Ja = W @ Ja[:, dof[:, None], dof[None, :]]
@@ -499,6 +522,36 @@ class H2OSolver:
             found.extend(e for e in attached if self.kind[e] == EdgeKind.POSITION)
             node = int(self.tree.parent[node])
         return found[:count]
+
+
+class EdgeTable:
+    """Growable arrays of edges (amortized O(1) appends, array views for vector work)."""
+
+    def __init__(self, p: int, capacity: int = 64) -> None:
+        self.m = 0
+        self.kind = np.zeros(capacity, dtype=np.int8)
+        self.a = np.zeros(capacity, dtype=np.int64)
+        self.b = np.zeros(capacity, dtype=np.int64)
+        self.meas_R = np.zeros((capacity, 3, 3))
+        self.meas_t = np.zeros((capacity, 3))
+        self.info = np.zeros((capacity, 6, 6))
+        self.W = np.zeros((capacity, p, p))
+
+    def append(
+        self, kind: int, a: int, b: int, meas_R: Array, meas_t: Array, info: Array,
+        dof: np.ndarray,
+    ) -> int:
+        """Store one edge and return its index."""
+        if self.m == len(self.kind):
+            for name in ("kind", "a", "b", "meas_R", "meas_t", "info", "W"):
+                old = getattr(self, name)
+                setattr(self, name, np.concatenate([old, np.zeros_like(old)]))
+        e = self.m
+        self.kind[e], self.a[e], self.b[e] = kind, a, b
+        self.meas_R[e], self.meas_t[e], self.info[e] = meas_R, meas_t, info
+        self.W[e] = whitening(self.info[e], dof)
+        self.m += 1
+        return e
 
 
 def _tree_edges(graph: PoseGraph, parents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
