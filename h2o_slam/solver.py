@@ -602,7 +602,11 @@ def _solve_spd(H: sp.csc_matrix, g: Array) -> Array:
     A singular ``H`` (an unconstrained direction) falls back to the minimum-norm solution.
     """
     try:
-        x = spla.splu(H, permc_spec="MMD_AT_PLUS_A").solve(g)
+        # Symmetric mode without pivoting keeps the minimum-degree ordering's sparsity: with
+        # SuperLU's default partial pivoting a 15 000-unknown sphere takes 80 s, not 0.2 s.
+        lu = spla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                       options={"SymmetricMode": True})
+        x = lu.solve(g)
         if np.all(np.isfinite(x)):
             return x
     except RuntimeError:
