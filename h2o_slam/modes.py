@@ -22,7 +22,8 @@ import numpy as np
 
 from h2o_slam import geometry as geo
 from h2o_slam.geometry import Array
-from h2o_slam.graph import EARTH, EdgeKind, PoseGraph, chi2
+from h2o_slam.graph import EARTH, EdgeKind, PoseGraph, chi2, edge_chi2
+from h2o_slam.online import OnlineConfig, OnlineH2O
 from h2o_slam.solver import H2OSolver, SolverConfig
 from h2o_slam.tree import PoseTree, spanning_parents
 
@@ -37,6 +38,8 @@ class SolveResult:
         chi2_per_pass: χ² after each pass (offline), iteration (exact), or the online pass
             followed by any offline passes.
         per_callback_ms: online mode: wall time of each pose's callback (ms).
+        chi2_trace: online mode: ``(cumulative callback seconds, χ²)`` samples.
+        deferred_edges: online mode: edges still waiting when the last pose arrived.
     """
 
     R: Array
@@ -44,6 +47,8 @@ class SolveResult:
     chi2_initial: float
     chi2_per_pass: list[float] = field(default_factory=list)
     per_callback_ms: list[float] = field(default_factory=list)
+    chi2_trace: list[tuple[float, float]] = field(default_factory=list)
+    deferred_edges: int = 0
 
     @property
     def chi2_final(self) -> float:
@@ -103,9 +108,10 @@ def offline_order(solver: H2OSolver) -> list[int]:
     return [int(e) for e in np.argsort(depth, kind="stable")]
 
 
-def offline_pass(solver: H2OSolver, order: list[int]) -> None:
+def offline_pass(solver: H2OSolver, order: list[int], d_max: int | None = None) -> None:
     """One pass of the paper's Algorithm 1 over ``order``: GPS edges are gathered and relaxed
-    together in batches of ``gps_batch_size``; other edges one at a time."""
+    together in batches of ``gps_batch_size``; other edges one at a time, solving for at most
+    ``d_max`` nodes each."""
     batch: list[int] = []
     size = solver.config.gps_batch_size
     for e in order:
@@ -117,21 +123,22 @@ def offline_pass(solver: H2OSolver, order: list[int]) -> None:
         else:
             solver.relax_batch(batch)
             batch = []
-            solver.relax(e)
+            solver.relax(e, d_max=d_max)
     solver.relax_batch(batch)
     solver.end_pass()
 
 
 def solve_offline(
-    graph: PoseGraph, passes: int = 10, config: SolverConfig | None = None, init: str = "tree"
+    graph: PoseGraph, passes: int = 10, config: SolverConfig | None = None, init: str = "tree",
+    d_max: int | None = None,
 ) -> SolveResult:
     """Relax the whole graph for ``passes`` passes (paper Algorithm 1); see
-    :func:`build_solver` for ``init``."""
+    :func:`build_solver` for ``init``; ``d_max`` bounds the nodes solved for per edge."""
     solver, start = build_solver(graph, config, init)
     result = SolveResult(start.R.copy(), start.t.copy(), chi2(start))
     order = offline_order(solver)
     for _ in range(passes):
-        offline_pass(solver, order)
+        offline_pass(solver, order, d_max)
         result.chi2_per_pass.append(solver.chi2(graph))
     result.R, result.t = solver.world_poses()
     return result
@@ -192,23 +199,61 @@ def solve_lago(graph: PoseGraph) -> SolveResult:
 
 
 def solve_online(
-    graph: PoseGraph, passes: int = 0, config: SolverConfig | None = None
+    graph: PoseGraph,
+    passes: int = 0,
+    config: SolverConfig | None = None,
+    budget_s: float | None = None,
+    online: OnlineConfig | None = None,
+    trace_every: int = 0,
 ) -> SolveResult:
-    """Feed the graph pose by pose, relaxing each arriving edge (thesis Algorithm 1), then run
-    ``passes`` offline passes. Records the wall time of every pose's callback."""
-    solver = H2OSolver(graph.planar, config)
+    """Feed the graph pose by pose (thesis Algorithm 1), then run ``passes`` offline passes.
+
+    Each arriving pose is one callback: its edges are added (AddEdge, with tree balancing)
+    and one :meth:`~h2o_slam.online.OnlineH2O.step` runs in what is left of ``budget_s``
+    (``None``: every new edge is relaxed in full). The wall time of every callback is
+    recorded; with ``trace_every > 0`` the χ² is sampled every that many callbacks, outside
+    the timed region, against the cumulative callback time.
+    """
+    h2o = OnlineH2O(graph.planar, config, online)
     result = SolveResult(graph.R.copy(), graph.t.copy(), chi2(graph))
+    spent = 0.0
     for node, edges in enumerate(arrivals(graph)):
         start = time.perf_counter()
-        online_callback(solver, graph, node, edges)
-        result.per_callback_ms.append(1e3 * (time.perf_counter() - start))
-    result.chi2_per_pass.append(solver.chi2(graph))
-    order = offline_order(solver)
+        add_arrival(h2o, graph, node, edges)
+        left = None if budget_s is None else budget_s - (time.perf_counter() - start)
+        h2o.step(None if left is None else max(left, 0.0))
+        elapsed = time.perf_counter() - start
+        spent += elapsed
+        result.per_callback_ms.append(1e3 * elapsed)
+        if trace_every and (node % trace_every == 0 or node == graph.num_nodes - 1):
+            result.chi2_trace.append((spent, _partial_chi2(h2o, graph)))
+    result.deferred_edges = len(h2o.pending)
+    result.chi2_per_pass.append(h2o.solver.chi2(graph))
+    order = offline_order(h2o.solver)
     for _ in range(passes):
-        offline_pass(solver, order)
-        result.chi2_per_pass.append(solver.chi2(graph))
-    result.R, result.t = solver.world_poses()
+        start = time.perf_counter()
+        offline_pass(h2o.solver, order, h2o.online.d_max)
+        spent += time.perf_counter() - start
+        result.chi2_per_pass.append(h2o.solver.chi2(graph))
+        if trace_every:
+            result.chi2_trace.append((spent, result.chi2_per_pass[-1]))
+    result.R, result.t = h2o.solver.world_poses()
     return result
+
+
+def _partial_chi2(h2o: OnlineH2O, graph: PoseGraph) -> float:
+    """χ² of the edges added so far, at the current estimate of the nodes added so far."""
+    n, m = h2o.num_nodes, h2o.solver.num_edges
+    R, t = h2o.solver.world_poses()
+    full_R = np.concatenate([R, np.broadcast_to(np.eye(3), (graph.num_nodes - n, 3, 3))])
+    full_t = np.concatenate([t, np.zeros((graph.num_nodes - n, 3))])
+    added = _added_edges(graph, h2o)
+    return float(np.sum(edge_chi2(graph, full_R, full_t)[added])) if m else 0.0
+
+
+def _added_edges(graph: PoseGraph, h2o: OnlineH2O) -> np.ndarray:
+    newest = np.where(graph.a == EARTH, graph.b, np.maximum(graph.a, graph.b))
+    return np.flatnonzero(newest < h2o.num_nodes)
 
 
 def arrivals(graph: PoseGraph) -> list[np.ndarray]:
@@ -221,21 +266,14 @@ def arrivals(graph: PoseGraph) -> list[np.ndarray]:
     return [order[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
-def online_callback(solver: H2OSolver, graph: PoseGraph, node: int, edges: np.ndarray) -> None:
-    """Add pose ``node`` and its edges to the solver and relax them (thesis Algorithm 1).
+def add_arrival(h2o: OnlineH2O, graph: PoseGraph, node: int, edges: np.ndarray) -> None:
+    """Add pose ``node`` of ``graph`` and its edges (relative ones first) to ``h2o``.
 
     A pose with no relative edge to an earlier pose starts a new subtree at its estimate.
     """
-    rel = [e for e in edges if graph.kind[e] == EdgeKind.RELATIVE]
+    rel = [int(e) for e in edges if graph.kind[e] == EdgeKind.RELATIVE]
     if not rel:
-        solver.add_pose(graph.R[node], graph.t[node])
-    size = solver.config.gps_batch_size
-    for e in list(rel) + [e for e in edges if graph.kind[e] != EdgeKind.RELATIVE]:
-        edge = solver.add_edge(
-            int(graph.kind[e]), int(graph.a[e]), int(graph.b[e]),
-            graph.meas_R[e], graph.meas_t[e], graph.info[e],
-        )
-        if solver.kind[edge] == EdgeKind.POSITION:
-            solver.relax_batch(solver.upstream_gps(solver.b[edge], size))
-        else:
-            solver.relax(edge)
+        h2o.add_pose(graph.R[node], graph.t[node])
+    for e in rel + [int(e) for e in edges if graph.kind[e] != EdgeKind.RELATIVE]:
+        h2o.add_edge(int(graph.kind[e]), int(graph.a[e]), int(graph.b[e]),
+                     graph.meas_R[e], graph.meas_t[e], graph.info[e])

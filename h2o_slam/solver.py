@@ -73,6 +73,26 @@ class Linearization:
     len_a: int  # the domain is the a-chain (this long) followed by the b-chain
 
 
+@dataclass(frozen=True)
+class RelaxOutcome:
+    """What one single-edge update did.
+
+    Attributes:
+        accepted: the update stands (False: the guard undid it).
+        chi2_before: the edge's χ² before the update.
+        energy_after: the edge's χ² after, plus the regularizer's price of the moves (equal
+            to ``chi2_before`` when unguarded).
+        domain: size of the edge's domain.
+        solved: nodes solved for (``domain`` unless interpolated).
+    """
+
+    accepted: bool
+    chi2_before: float
+    energy_after: float
+    domain: int
+    solved: int
+
+
 def whitening(info: Array, dof: np.ndarray) -> Array:
     """``W`` with ``Wᵀ W = S`` for information matrices ``S`` restricted to ``dof``."""
     S = info[..., dof[:, None], dof[None, :]]
@@ -102,6 +122,7 @@ class H2OSolver:
         self._paths: list[EdgePath | None] = []
         self._contrib: list[tuple[np.ndarray, Array] | None] = []
         self._gps_at: dict[int, list[int]] = {}
+        self._incident: dict[int, list[int]] = {}
 
     # -- building -----------------------------------------------------------------------------
 
@@ -195,6 +216,9 @@ class H2OSolver:
         self, kind: int, a: int, b: int, meas_R: Array, meas_t: Array, info: Array
     ) -> int:
         edge = self._edges.append(kind, a, b, meas_R, meas_t, info, self.dof)
+        self._incident.setdefault(int(b), []).append(edge)
+        if a != EARTH:
+            self._incident.setdefault(int(a), []).append(edge)
         self._paths.append(None)
         self._contrib.append(None)
         if kind != EdgeKind.RELATIVE:
@@ -284,23 +308,69 @@ class H2OSolver:
 
     # -- updates ------------------------------------------------------------------------------
 
-    def relax(self, edge: int, d_max: int | None = None, scale: float | None = None) -> None:
+    def relax(
+        self, edge: int, d_max: int | None = None, scale: float | None = None,
+        guard: bool = False,
+    ) -> RelaxOutcome:
         """Single-edge hybrid-Hessian update of ``edge`` (thesis 3.3.5).
 
         With ``d_max`` smaller than the domain, interpolated solving (3.3.6): solve for at most
         ``d_max`` nodes with merged constraints and spread their change over the rest.
         ``scale`` replaces the temperature (the π/8 rotation cap still applies).
+
+        With ``guard``, the update is undone when it raises the energy it set out to lower —
+        the edge's own χ² plus ``Σᵢ δᵢᵀ B_c δᵢ``, what the other edges pay for the moves —
+        which is how too small a ``d_max`` shows its divergence (Table 3.1).
         """
         lin = self.linearize(edge)
-        B_c = self._regularizer_without(edge, lin.domain)
-        if d_max is None or len(lin.domain) <= d_max:
-            x = solve_hybrid(lin.J, lin.r, B_c)
-            self._apply(lin.domain, x, self._step_scale(x, scale))
+        dom = lin.domain
+        B_c = self._regularizer_without(edge, dom)
+        saved = (self.tree.R[dom].copy(), self.tree.t[dom].copy()) if guard else None
+        interpolated = d_max is not None and len(dom) > d_max
+        if interpolated:
+            assert d_max is not None
+            solved = self._relax_interpolated(lin, B_c, d_max, scale)
         else:
-            self._relax_interpolated(lin, B_c, d_max, scale)
+            x = solve_hybrid(lin.J, lin.r, B_c)
+            self._apply(dom, x, self._step_scale(x, scale))
+            solved = len(dom)
+        before = float(lin.r @ lin.r)
+        after = self._energy_after(edge, dom, B_c, saved) if saved is not None else before
+        accepted = after <= before * (1.0 + 1e-9) + 1e-12
+        if not accepted:
+            assert saved is not None
+            self.tree.R[dom], self.tree.t[dom] = saved
+        # J was taken at the state kept in either case, so it is the edge's contribution.
         contrib = _gram(lin.J)
-        self.B[lin.domain] = B_c + contrib
-        self._contrib[edge] = (lin.domain, contrib)
+        self.B[dom] = B_c + contrib
+        self._contrib[edge] = (dom, contrib)
+        return RelaxOutcome(accepted, before, after, len(dom), solved)
+
+    def _energy_after(
+        self, edge: int, dom: np.ndarray, B_c: Array, saved: tuple[Array, Array]
+    ) -> float:
+        """The edge's χ² after an update plus the regularizer's price of the moves."""
+        r = self.residual(edge)
+        step_t = self.tree.t[dom] - saved[1]
+        step_r = geo.so3_log(np.swapaxes(saved[0], -1, -2) @ self.tree.R[dom])
+        delta = np.concatenate([step_t, step_r], axis=1)[:, self.dof]
+        return float(r @ r + np.einsum("di,dij,dj->", delta, B_c, delta))
+
+    def residual(self, edge: int) -> Array:
+        """Whitened residual of one edge at the current estimate (no Jacobian)."""
+        path = self.path(edge)
+        Ra, xa = self._end_pose(path.a_chain)
+        Rb, xb = self._end_pose(path.b_chain)
+        table = self._edges
+        e, _, _ = endpoint_jacobians_one(
+            int(table.kind[edge]), Ra, xa, Rb, xb, table.meas_R[edge], table.meas_t[edge])
+        return table.W[edge] @ e[self.dof]
+
+    def _end_pose(self, chain: np.ndarray) -> tuple[Array, Array]:
+        if len(chain) == 0:
+            return np.eye(3), np.zeros(3)
+        R, x = self.tree.chain_poses(chain)
+        return R[-1], x[-1]
 
     def _regularizer_without(self, edge: int, domain: np.ndarray) -> Array:
         """``B_c``: the regularizer blocks of ``domain`` without ``edge``'s own contribution."""
@@ -313,7 +383,7 @@ class H2OSolver:
 
     def _relax_interpolated(
         self, lin: Linearization, B_c: Array, d_max: int, scale: float | None
-    ) -> None:
+    ) -> int:
         dom = lin.domain
         sel = interpolate.select(lin.len_a, len(dom) - lin.len_a, d_max)
         B_sel = B_c[sel.kept]
@@ -327,6 +397,7 @@ class H2OSolver:
             sel, self.tree.R[dom], self.tree.t[dom], step, self._compliance(B_c))
         self.tree.R[dom] = R_new
         self.tree.t[dom] = t_new
+        return len(sel.kept)
 
     def _merge_adjustment(
         self, lin: Linearization, sel: interpolate.Selection, merged: np.ndarray
@@ -513,6 +584,55 @@ class H2OSolver:
         self.temperature *= self.config.temperature_decay
         n = self.num_nodes
         self.tree.R[:n] = geo.orthonormalize(self.tree.R[:n])
+
+    # -- re-parametrization --------------------------------------------------------------------
+
+    def incident(self, node: int) -> list[int]:
+        """Edges with ``node`` as an endpoint."""
+        return self._incident.get(node, [])
+
+    def world_pose(self, node: int) -> tuple[Array, Array]:
+        """World pose of one node, composed down its ancestry (O(depth))."""
+        chain = []
+        while node != EARTH:
+            chain.append(node)
+            node = int(self.tree.parent[node])
+        R, t = self.tree.chain_poses(np.array(chain[::-1], dtype=np.int64))
+        return R[-1], t[-1]
+
+    def reparent(self, node: int, parent: int, edge: int, refresh: bool = True) -> set[int]:
+        """Hang ``node`` under ``parent`` (tied by ``edge``), keeping every world pose.
+
+        Paths through the moved subtree change, so the edges touching it get new domains and
+        new contributions to ``B`` (thesis 3.3.9). With ``refresh=False`` the caller refreshes
+        the returned edges itself (:meth:`refresh_edges`), once for many re-parentings.
+        """
+        R_n, t_n = self.world_pose(node)
+        R_p, t_p = self.world_pose(parent) if parent != EARTH else (np.eye(3), np.zeros(3))
+        R_loc, t_loc = geo.between(R_p, t_p, R_n, t_n)
+        moved = self.tree.reparent(node, parent, geo.renormalize(R_loc), t_loc)
+        if edge >= 0:
+            self._set_tree_edge(node, edge, forward=int(self._edges.a[edge]) == parent)
+        else:
+            self._set_tree_edge(node, -1, forward=True)
+        affected = {e for n in moved for e in self.incident(n)}
+        for e in affected:
+            self._paths[e] = None
+        if refresh:
+            self.refresh_edges(affected)
+        return affected
+
+    def refresh_edges(self, edges: set[int] | list[int]) -> None:
+        """Recompute the paths and ``B`` contributions of edges whose paths changed."""
+        for e in edges:
+            self._paths[e] = None
+            old = self._contrib[e]
+            if old is not None:
+                self.B[old[0]] -= old[1]
+            lin = self.linearize(e)
+            contrib = _gram(lin.J)
+            self.B[lin.domain] += contrib
+            self._contrib[e] = (lin.domain, contrib)
 
     def upstream_gps(self, node: int, count: int) -> list[int]:
         """``GetUpstreamGPSes``: the first ``count`` GPS edges found walking up from ``node``."""

@@ -266,6 +266,41 @@ def _assemble(
     return SyntheticGraph(graph, truth_R, truth_t)
 
 
+def add_gps(
+    graph: PoseGraph, truth_t: Array, every: int, sigma_m: float, seed: int = 0
+) -> PoseGraph:
+    """A copy of ``graph`` with a GPS position edge at poses ``0, every, 2·every, …``.
+
+    Each fix is ``truth_t`` of its pose plus Gaussian noise of ``sigma_m`` per axis (x, y for
+    planar graphs), with the matching information matrix. Used to run experiments like the
+    thesis' GPS-augmented Paris graphs on any graph, taking its optimum as the truth.
+
+    Raises:
+        InputError: ``every`` is not positive or ``sigma_m`` is not positive and finite.
+    """
+    if every < 1:
+        raise InputError(f"--gps-every must be at least 1, got {every}")
+    if not (np.isfinite(sigma_m) and sigma_m > 0.0):
+        raise InputError(f"--gps-sigma must be positive, got {sigma_m}")
+    rng = np.random.default_rng(seed)
+    nodes = np.arange(0, graph.num_nodes, every)
+    axes = np.arange(2 if graph.planar else 3)
+    meas_t = np.zeros((len(nodes), 3))
+    meas_t[:, axes] = truth_t[np.ix_(nodes, axes)] + sigma_m * rng.standard_normal(
+        (len(nodes), len(axes)))
+    info = np.zeros((len(nodes), 6, 6))
+    info[np.ix_(np.arange(len(nodes)), axes, axes)] = np.eye(len(axes)) / sigma_m**2
+    kind = np.concatenate([graph.kind, np.full(len(nodes), EdgeKind.POSITION, np.int8)])
+    return make_graph(
+        graph.planar, graph.ids, graph.R, graph.t, kind,
+        np.concatenate([graph.a, np.full(len(nodes), EARTH)]),
+        np.concatenate([graph.b, nodes]),
+        np.concatenate([graph.meas_R, np.broadcast_to(np.eye(3), (len(nodes), 3, 3))]),
+        np.concatenate([graph.meas_t, meas_t]),
+        np.concatenate([graph.info, info]),
+    )
+
+
 def truth_path(out: Path) -> Path:
     """Where the command line writes the ground truth for the graph file ``out``."""
     if out.suffix == ".g2o":

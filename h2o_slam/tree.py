@@ -51,6 +51,7 @@ class PoseTree:
         self.depth = np.zeros(capacity, dtype=np.int64)
         self.R = np.tile(np.eye(3), (capacity, 1, 1))
         self.t = np.zeros((capacity, 3))
+        self._children: list[set[int]] | None = None
 
     # -- growth -------------------------------------------------------------------------------
 
@@ -64,7 +65,53 @@ class PoseTree:
         self.R[i] = R_local
         self.t[i] = t_local
         self.n += 1
+        if self._children is not None:
+            self._children.append(set())
+            if parent != EARTH:
+                self._children[parent].add(i)
         return i
+
+    def children(self, node: int) -> set[int]:
+        """Children of ``node`` (built on first use, then maintained)."""
+        if self._children is None:
+            kids: list[set[int]] = [set() for _ in range(self.n)]
+            for child, parent in enumerate(self.parent[: self.n]):
+                if parent != EARTH:
+                    kids[int(parent)].add(child)
+            self._children = kids
+        return self._children[node]
+
+    def subtree(self, node: int) -> list[int]:
+        """``node`` and all its descendants, parents before children."""
+        out = [node]
+        i = 0
+        while i < len(out):
+            out.extend(self.children(out[i]))
+            i += 1
+        return out
+
+    def reparent(self, node: int, parent: int, R_local: Array, t_local: Array) -> list[int]:
+        """Hang ``node`` (with its subtree) under ``parent`` with a new local transform.
+
+        Returns the subtree, whose depths are updated.
+
+        Raises:
+            ValueError: ``parent`` is ``node`` or one of its descendants.
+        """
+        sub = self.subtree(node)
+        if parent in sub:
+            raise ValueError(f"cannot hang node {node} under its own descendant {parent}")
+        old = int(self.parent[node])
+        if old != EARTH:
+            self.children(old).discard(node)
+        if parent != EARTH:
+            self.children(parent).add(node)
+        self.parent[node] = parent
+        self.R[node] = R_local
+        self.t[node] = t_local
+        shift = (1 if parent == EARTH else int(self.depth[parent]) + 1) - int(self.depth[node])
+        self.depth[sub] += shift
+        return sub
 
     def _grow(self, capacity: int) -> None:
         extra = capacity - len(self.parent)

@@ -1,0 +1,483 @@
+"""H₂O online: edges as a robot produces them, and a per-call time budget.
+
+:class:`OnlineH2O` wraps an :class:`~h2o_slam.solver.H2OSolver` with what running on a robot
+needs (thesis 3.3.9–3.3.13):
+
+* :meth:`OnlineH2O.add_edge` — Algorithm 2 (AddEdge): a new node joins the tree through its
+  edge; a cross edge that leaves its deeper end more than one level below the other re-parents
+  it and queues the breadth-first rebalancing (3.3.9); an edge between two separate trees
+  merges them by growing the larger tree into the smaller one; a GPS edge waits until its
+  subtree has ``gps_align_count`` of them, whose best fit then sets the subtree's global pose
+  (3.3.10).
+* :meth:`OnlineH2O.step` — one budgeted step: queued rebalancing first (bounded), then new
+  edges in arrival order, each solved for as many nodes as the calibrated cost model says fit
+  in the time left (interpolated solving below the domain size, a GPS edge with its upstream
+  GPS edges in one batch); an edge that does not fit even at the smallest size waits for the
+  next step. Time left over revisits old edges, highest residual first. Every update is
+  guarded: one that raises the energy is undone and retried at half the step.
+
+Work is never *started* when the cost model predicts it would overrun; the model is a linear
+fit of the measured time of each update to ``(1, domain size, solved size)``, refitted by
+recursive least squares as the robot runs.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from h2o_slam import geometry as geo
+from h2o_slam.geometry import Array
+from h2o_slam.graph import EARTH, EdgeKind
+from h2o_slam.solver import H2OSolver, SolverConfig
+
+
+@dataclass(frozen=True)
+class OnlineConfig:
+    """Online behaviour; defaults follow the thesis where it gives one.
+
+    Attributes:
+        d_max: most nodes solved for per edge (``None``: the whole domain when time allows).
+        d_max_min: fewest nodes worth solving for; an edge that cannot fit this waits.
+        balance: keep the tree balanced (3.3.9).
+        balance_share: fraction of a budget the rebalancing queue may use before new edges.
+        gps_align_count: GPS edges a subtree needs before its global pose is fitted (3.3.10).
+        guard: undo updates that raise the energy, retrying at half the step.
+        guard_retries: halvings tried before an update is skipped.
+        safety: factor applied to predicted costs before comparing them with the time left
+            (the cost model raises it when it sees larger misses).
+        reserve: fraction of each budget held back for bookkeeping and timing jitter.
+    """
+
+    d_max: int | None = None
+    d_max_min: int = 2
+    balance: bool = True
+    balance_share: float = 0.3
+    gps_align_count: int = 3
+    guard: bool = True
+    guard_retries: int = 3
+    safety: float = 1.2
+    reserve: float = 0.1
+
+    def __post_init__(self) -> None:
+        if self.d_max is not None and self.d_max < 1:
+            raise ValueError("d_max must be at least 1")
+        if self.d_max_min < 1:
+            raise ValueError("d_max_min must be at least 1")
+        if not 0.0 <= self.balance_share <= 1.0:
+            raise ValueError("balance_share must be in [0, 1]")
+        if not 0.0 <= self.reserve < 1.0:
+            raise ValueError("reserve must be in [0, 1)")
+        if self.gps_align_count < 2:
+            raise ValueError("gps_align_count must be at least 2")
+
+
+@dataclass
+class StepReport:
+    """What one :meth:`OnlineH2O.step` did.
+
+    Attributes:
+        elapsed_s: wall time of the step.
+        relaxed: new edges relaxed.
+        revisited: old edges relaxed with the time left over.
+        deferred: new edges still waiting (they did not fit).
+        undone: updates the guard undid (each retry counts).
+        smallest_d_max: the smallest number of nodes solved for in an update (0 if none).
+        balanced: the rebalancing queue is empty.
+        predictions: ``(predicted_s, remaining_s)`` of every update started.
+    """
+
+    elapsed_s: float = 0.0
+    relaxed: int = 0
+    revisited: int = 0
+    deferred: int = 0
+    undone: int = 0
+    smallest_d_max: int = 0
+    balanced: bool = True
+    predictions: list[tuple[float, float]] = field(default_factory=list)
+
+
+class CostModel:
+    """Predicted seconds of an update: ``c · (1, d, s)`` for domain size ``d`` and ``s`` solved
+    nodes.
+
+    Fitted by least squares over exponentially fading samples, pulled toward a prior by a
+    fixed ridge term: updates that solve their whole domain (``s = d``) make the two slopes
+    indistinguishable, and plain recursive least squares then winds up and predicts
+    nonsense (after which nothing fits and no new sample arrives to correct it).
+    """
+
+    PRIOR = np.array([2e-4, 3e-6, 3e-5])
+
+    def __init__(self, fading: float = 0.99, prior_weight: float = 4.0) -> None:
+        self.coef = self.PRIOR.copy()
+        self._fading = fading
+        # Ridge in units where each prior coefficient counts like `prior_weight` samples
+        # of a typical update (d = s = 50).
+        scale = np.array([1.0, 50.0, 50.0])
+        self._ridge = prior_weight * np.diag(scale**2)
+        self._A = np.zeros((3, 3))
+        self._b = np.zeros(3)
+        self.samples = 0
+        #: A fading maximum of measured / predicted time: the margin predictions need.
+        self.spread = 1.2
+
+    def predict(self, d: int, s: int) -> float:
+        """Predicted seconds for domain size ``d`` solving ``s`` nodes."""
+        return float(self.coef @ np.array([1.0, d, s]))
+
+    def update(self, d: int, s: int, seconds: float) -> None:
+        """Fold in one measured update."""
+        x = np.array([1.0, d, s])
+        ratio = seconds / max(self.predict(d, s), 1e-9)
+        self.spread = max(1.1, min(ratio, 3.0), 0.995 * self.spread)
+        self._A = self._fading * self._A + np.outer(x, x)
+        self._b = self._fading * self._b + x * seconds
+        coef = np.linalg.solve(self._A + self._ridge, self._b + self._ridge @ self.PRIOR)
+        self.coef = np.maximum(coef, [1e-5, 0.0, 1e-7])
+        self.samples += 1
+
+    def largest_fitting(self, d: int, cap: int, remaining_s: float, safety: float) -> int:
+        """The most nodes (≤ ``cap``) whose predicted cost, with margin, fits ``remaining_s``
+        (0: none). The margin is the larger of ``safety`` and the observed :attr:`spread`."""
+        c0, c1, c2 = self.coef
+        room = remaining_s / max(safety, self.spread) - c0 - c1 * d
+        if room < 0.0:
+            return 0
+        return int(min(cap, room / c2)) if c2 > 0.0 else cap
+
+
+class OnlineH2O:
+    """Incremental H₂O with a per-step time budget; see the module docstring.
+
+    Nodes are numbered in the order they are added, from 0.
+    """
+
+    def __init__(
+        self, planar: bool, config: SolverConfig | None = None,
+        online: OnlineConfig | None = None,
+    ) -> None:
+        self.solver = H2OSolver(planar, config)
+        self.online = online or OnlineConfig()
+        self.cost = CostModel()
+        self.pending: deque[int] = deque()
+        self.waiting: dict[int, int] = {}
+        self._balance_queue: deque[int] = deque()
+        # Edges whose paths changed under re-parenting and whose contribution to B still
+        # belongs to the old path; refreshed within budgets (relaxing one refreshes it too).
+        self._stale: dict[int, None] = {}
+        self._held_gps: dict[int, list[int]] = {}
+        self._aligned: set[int] = set()
+        self._priority = np.zeros(64)
+        self._refresh_cursor = 0
+        self.batch_cost = CostModel()
+        self._clock = time.perf_counter
+
+    # -- adding -------------------------------------------------------------------------------
+
+    @property
+    def num_nodes(self) -> int:
+        """Nodes added so far."""
+        return self.solver.num_nodes
+
+    def add_pose(self, R_world: Array, t_world: Array) -> int:
+        """Add a node that starts a new subtree at a world pose."""
+        return self.solver.add_pose(R_world, t_world)
+
+    def add_edge(
+        self, kind: int, a: int, b: int, meas_R: Array, meas_t: Array, info: Array
+    ) -> int:
+        """Add an edge (Algorithm 2); it is relaxed by a later :meth:`step`."""
+        solver = self.solver
+        n = solver.num_nodes
+        merging = (kind == EdgeKind.RELATIVE and a < n and b < n
+                   and self._top(a) != self._top(b))
+        edge = solver.add_edge(kind, a, b, meas_R, meas_t, info)
+        self._grow_priority()
+        if merging:
+            self._merge(edge)
+        elif kind == EdgeKind.RELATIVE and a < n and b < n and self.online.balance:
+            self._maybe_rebalance(edge)
+        if kind == EdgeKind.RELATIVE:
+            self.pending.append(edge)
+        else:
+            self._add_global(edge)
+        r = solver.residual(edge)
+        self._priority[edge] = float(r @ r)
+        return edge
+
+    def _grow_priority(self) -> None:
+        if self.solver.num_edges > len(self._priority):
+            self._priority = np.concatenate([self._priority, np.zeros(len(self._priority))])
+
+    def _top(self, node: int) -> int:
+        parent = self.solver.tree.parent
+        while parent[node] != EARTH:
+            node = int(parent[node])
+        return node
+
+    # -- tree balancing and merging (3.3.9) ---------------------------------------------------
+
+    def _maybe_rebalance(self, edge: int) -> None:
+        depth = self.solver.tree.depth
+        a, b = int(self.solver.a[edge]), int(self.solver.b[edge])
+        if depth[a] > depth[b]:
+            a, b = b, a
+        if depth[b] > depth[a] + 1:
+            self._stale.update(dict.fromkeys(self.solver.reparent(b, a, edge, refresh=False)))
+            self._balance_queue.append(b)
+
+    def balance(self, deadline: float = float("inf")) -> bool:
+        """Work through the rebalancing queue (breadth-first from re-parented nodes), then
+        refresh the regularizer contributions of edges whose paths changed, until both are
+        done or ``deadline`` passes. Returns whether both are done."""
+        solver = self.solver
+        depth = solver.tree.depth
+        while self._balance_queue and self._clock() < deadline:
+            u = self._balance_queue.popleft()
+            for e in solver.incident(u):
+                if solver.kind[e] != EdgeKind.RELATIVE:
+                    continue
+                n = int(solver.b[e]) if int(solver.a[e]) == u else int(solver.a[e])
+                if depth[n] > depth[u] + 1:
+                    self._stale.update(dict.fromkeys(solver.reparent(n, u, e, refresh=False)))
+                    self._balance_queue.append(n)
+        while self._stale and self._clock() < deadline:
+            edge = next(iter(self._stale))
+            del self._stale[edge]
+            solver.refresh_edges([edge])
+        return not self._balance_queue and not self._stale
+
+    def _merge(self, edge: int) -> None:
+        """Join two trees through ``edge``: the smaller one is re-rooted at its endpoint and
+        hung from the other endpoint, moved rigidly onto the edge's measurement unless GPS
+        already placed it."""
+        solver = self.solver
+        a, b = int(solver.a[edge]), int(solver.b[edge])
+        top_a, top_b = self._top(a), self._top(b)
+        size_a = len(solver.tree.subtree(top_a))
+        size_b = len(solver.tree.subtree(top_b))
+        small, big = (a, b) if size_a <= size_b else (b, a)
+        top_small = top_a if small == a else top_b
+        if top_small not in self._aligned:
+            self._move_onto_edge(edge, small, big, top_small)
+        nodes = solver.tree.subtree(top_small)
+        order, parents, via = self._bfs(small, set(nodes))
+        affected: set[int] = set()
+        affected |= solver.reparent(small, big, edge, refresh=False)
+        for node, parent, e in zip(order[1:], parents[1:], via[1:], strict=True):
+            affected |= solver.reparent(node, parent, e, refresh=False)
+        solver.refresh_edges(affected)
+        held = self._held_gps.pop(top_small, [])
+        self._held_gps.setdefault(self._top(big), []).extend(held)
+        self._release_gps(self._top(big))
+
+    def _move_onto_edge(self, edge: int, small: int, big: int, top_small: int) -> None:
+        solver = self.solver
+        R_big, t_big = solver.world_pose(big)
+        R_k, t_k = solver.meas_R[edge], solver.meas_t[edge]
+        if int(solver.a[edge]) != big:
+            R_k, t_k = geo.inverse(R_k, t_k)
+        R_want, t_want = geo.compose(R_big, t_big, R_k, t_k)
+        R_now, t_now = solver.world_pose(small)
+        # T maps the small tree's world frame onto the big one's: T · now = want.
+        R_T, t_T = geo.compose(R_want, t_want, *geo.inverse(R_now, t_now))
+        tree = solver.tree
+        R_top, tree.t[top_small] = geo.compose(R_T, t_T, tree.R[top_small], tree.t[top_small])
+        tree.R[top_small] = geo.renormalize(R_top)
+
+    def _bfs(self, start: int, allowed: set[int]) -> tuple[list[int], list[int], list[int]]:
+        """Breadth-first order of ``allowed`` from ``start`` over relative edges, with each
+        node's parent and the edge that reached it."""
+        solver = self.solver
+        order, parents, via = [start], [EARTH], [-1]
+        seen = {start}
+        i = 0
+        while i < len(order):
+            u = order[i]
+            i += 1
+            for e in solver.incident(u):
+                if solver.kind[e] != EdgeKind.RELATIVE:
+                    continue
+                n = int(solver.b[e]) if int(solver.a[e]) == u else int(solver.a[e])
+                if n in allowed and n not in seen:
+                    seen.add(n)
+                    order.append(n)
+                    parents.append(u)
+                    via.append(e)
+        # Nodes the edges cannot reach (a subtree joined by GPS only) keep their parent.
+        return order, parents, via
+
+    # -- GPS (3.3.10) -------------------------------------------------------------------------
+
+    def _add_global(self, edge: int) -> None:
+        top = self._top(int(self.solver.b[edge]))
+        if self.solver.kind[edge] != EdgeKind.POSITION or top in self._aligned:
+            self.pending.append(edge)
+            return
+        self._held_gps.setdefault(top, []).append(edge)
+        self._release_gps(top)
+
+    def _release_gps(self, top: int) -> None:
+        held = self._held_gps.get(top, [])
+        if top in self._aligned or len(held) < self.online.gps_align_count:
+            return
+        self._align(top, held)
+        self._aligned.add(top)
+        self.pending.extend(self._held_gps.pop(top))
+
+    def _align(self, top: int, edges: list[int]) -> None:
+        """Best-fit rigid transform of a subtree onto its GPS fixes (weighted Kabsch; yaw only
+        for planar graphs), applied to the subtree's top."""
+        solver = self.solver
+        nodes = [int(solver.b[e]) for e in edges]
+        P = np.array([solver.world_pose(n)[1] for n in nodes])
+        Q = solver.meas_t[edges]
+        w = np.array([np.trace(solver.info[e][:3, :3]) for e in edges])
+        R_T, t_T = best_fit_transform(P, Q, w, planar=solver.planar)
+        tree = solver.tree
+        R_top, tree.t[top] = geo.compose(R_T, t_T, tree.R[top], tree.t[top])
+        tree.R[top] = geo.renormalize(R_top)
+
+    # -- stepping -----------------------------------------------------------------------------
+
+    def step(self, budget_s: float | None = None) -> StepReport:
+        """Relax new edges, then old ones, within ``budget_s`` (``None``: no limit, every new
+        edge solved in full)."""
+        start = self._clock()
+        deadline = (float("inf") if budget_s is None
+                    else start + budget_s * (1.0 - self.online.reserve))
+        report = StepReport()
+        if self.online.balance:
+            share = float("inf") if budget_s is None else self.online.balance_share * budget_s
+            report.balanced = self.balance(min(deadline, start + share))
+        while self.pending:
+            edge = self.pending[0]
+            if not self._relax_within(edge, deadline, report):
+                break
+            self.pending.popleft()
+            self.waiting.pop(edge, None)
+            report.relaxed += 1
+        for edge in self.pending:
+            self.waiting[edge] = self.waiting.get(edge, 0) + 1
+        report.deferred = len(self.pending)
+        if budget_s is not None:
+            self._revisit(deadline, report)
+        report.elapsed_s = self._clock() - start
+        return report
+
+    def _revisit(self, deadline: float, report: StepReport) -> None:
+        """Spend the time left on old edges, highest residual first.
+
+        Residuals go stale as other updates move nodes, so each call first re-measures a
+        few edges in round-robin order; a revisited edge drops to half its new residual so
+        that one stubborn edge cannot take every spare millisecond.
+        """
+        waiting = set(self.pending)
+        m = self.solver.num_edges
+        self._refresh_priorities(min(m, 16), deadline)
+        tried = 0
+        while self._clock() < deadline and tried < m:
+            edge = int(np.argmax(self._priority[:m]))
+            tried += 1
+            if edge in waiting or self._priority[edge] <= 0.0:
+                break
+            if not self._relax_within(edge, deadline, report):
+                break
+            self._priority[edge] *= 0.5
+            report.revisited += 1
+
+    def _refresh_priorities(self, count: int, deadline: float) -> None:
+        m = self.solver.num_edges
+        for _ in range(count):
+            if self._clock() >= deadline:
+                return
+            e = self._refresh_cursor % m
+            self._refresh_cursor += 1
+            r = self.solver.residual(e)
+            self._priority[e] = float(r @ r)
+
+    def _relax_within(self, edge: int, deadline: float, report: StepReport) -> bool:
+        """Relax ``edge`` if it fits before ``deadline``; False if it must wait.
+
+        A GPS edge goes with its upstream GPS edges in one batch when that fits, and alone
+        (interpolated if need be) otherwise.
+        """
+        solver = self.solver
+        if solver.kind[edge] == EdgeKind.POSITION and self._relax_gps(edge, deadline, report):
+            return True
+        d = len(solver.path(edge).domain)
+        cap = d if self.online.d_max is None else min(d, self.online.d_max)
+        remaining = deadline - self._clock()
+        s = self.cost.largest_fitting(d, cap, remaining, self.online.safety)
+        if s < min(self.online.d_max_min, cap):
+            return False
+        report.predictions.append(
+            (self.cost.predict(d, s) * max(self.online.safety, self.cost.spread), remaining))
+        report.smallest_d_max = s if report.smallest_d_max == 0 else min(report.smallest_d_max, s)
+        scale: float | None = None
+        for _ in range(self.online.guard_retries + 1):
+            begin = self._clock()
+            outcome = solver.relax(edge, d_max=s if s < d else None, scale=scale,
+                                   guard=self.online.guard)
+            self._stale.pop(edge, None)
+            self.cost.update(d, s, self._clock() - begin)
+            if outcome.accepted:
+                self._priority[edge] = min(outcome.energy_after, outcome.chi2_before)
+                return True
+            report.undone += 1
+            scale = 0.5 * (solver.temperature if scale is None else scale)
+            margin = max(self.online.safety, self.cost.spread)
+            if deadline - self._clock() < self.cost.predict(d, s) * margin:
+                break
+        # Nothing it tried helped: leave the edge be until the rest of the graph moves.
+        self._priority[edge] = 0.0
+        return True
+
+    def _relax_gps(self, edge: int, deadline: float, report: StepReport) -> bool:
+        solver = self.solver
+        batch = solver.upstream_gps(int(solver.b[edge]), solver.config.gps_batch_size)
+        if edge not in batch:
+            batch.append(edge)
+        nodes = np.unique(np.concatenate([solver.path(e).domain for e in batch]))
+        d = len(nodes)
+        remaining = deadline - self._clock()
+        predicted = self.batch_cost.predict(d, len(batch)) * max(
+            self.online.safety, self.batch_cost.spread)
+        if predicted > remaining:
+            return False
+        report.predictions.append((predicted, remaining))
+        begin = self._clock()
+        solver.relax_batch(batch)
+        self.batch_cost.update(d, len(batch), self._clock() - begin)
+        for e in batch:
+            self._priority[e] = 0.0
+        return True
+
+
+def best_fit_transform(
+    P: Array, Q: Array, weights: Array, planar: bool
+) -> tuple[Array, Array]:
+    """Rigid ``(R, t)`` minimizing ``Σ wᵢ ‖R pᵢ + t − qᵢ‖²`` (weighted Kabsch / Umeyama).
+
+    Planar: a rotation about ``z`` only, fitted to the x–y coordinates.
+    """
+    w = np.asarray(weights, dtype=float) / np.sum(weights)
+    p0 = w @ P
+    q0 = w @ Q
+    Pc, Qc = P - p0, Q - q0
+    if planar:
+        yaw = np.arctan2(np.sum(w * (Pc[:, 0] * Qc[:, 1] - Pc[:, 1] * Qc[:, 0])),
+                         np.sum(w * (Pc[:, 0] * Qc[:, 0] + Pc[:, 1] * Qc[:, 1])))
+        R = geo.yaw_to_matrix(yaw)
+        t = q0 - R @ p0
+        t[2] = 0.0
+        return R, t
+    cov = (Qc * w[:, None]).T @ Pc
+    u, _, vt = np.linalg.svd(cov)
+    fix = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    R = u @ fix @ vt
+    return R, q0 - R @ p0
