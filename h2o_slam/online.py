@@ -133,7 +133,7 @@ class CostModel:
         """Fold in one measured update."""
         x = np.array([1.0, d, s])
         ratio = seconds / max(self.predict(d, s), 1e-9)
-        self.spread = max(1.1, min(ratio, 3.0), 0.995 * self.spread)
+        self.spread = max(1.1, min(ratio, 2.0), 0.995 * self.spread)
         self._A = self._fading * self._A + np.outer(x, x)
         self._b = self._fading * self._b + x * seconds
         coef = np.linalg.solve(self._A + self._ridge, self._b + self._ridge @ self.PRIOR)
@@ -227,8 +227,14 @@ class OnlineH2O:
         if depth[a] > depth[b]:
             a, b = b, a
         if depth[b] > depth[a] + 1:
-            self._stale.update(dict.fromkeys(self.solver.reparent(b, a, edge, refresh=False)))
-            self._balance_queue.append(b)
+            self._hang(b, a, edge)
+
+    def _hang(self, node: int, parent: int, edge: int) -> None:
+        """Re-parent ``node`` and queue its whole subtree: every depth in it dropped, so any
+        of their neighbours may now hang lower too (3.3.9's recursion)."""
+        moved, affected = self.solver.reparent(node, parent, edge, refresh=False)
+        self._stale.update(dict.fromkeys(affected))
+        self._balance_queue.extend(moved)
 
     def balance(self, deadline: float = float("inf")) -> bool:
         """Work through the rebalancing queue (breadth-first from re-parented nodes), then
@@ -243,8 +249,7 @@ class OnlineH2O:
                     continue
                 n = int(solver.b[e]) if int(solver.a[e]) == u else int(solver.a[e])
                 if depth[n] > depth[u] + 1:
-                    self._stale.update(dict.fromkeys(solver.reparent(n, u, e, refresh=False)))
-                    self._balance_queue.append(n)
+                    self._hang(n, u, e)
         while self._stale and self._clock() < deadline:
             edge = next(iter(self._stale))
             del self._stale[edge]
@@ -266,11 +271,12 @@ class OnlineH2O:
             self._move_onto_edge(edge, small, big, top_small)
         nodes = solver.tree.subtree(top_small)
         order, parents, via = self._bfs(small, set(nodes))
-        affected: set[int] = set()
-        affected |= solver.reparent(small, big, edge, refresh=False)
+        affected = solver.reparent(small, big, edge, refresh=False)[1]
         for node, parent, e in zip(order[1:], parents[1:], via[1:], strict=True):
-            affected |= solver.reparent(node, parent, e, refresh=False)
+            affected |= solver.reparent(node, parent, e, refresh=False)[1]
         solver.refresh_edges(affected)
+        if self.online.balance:
+            self._balance_queue.extend(nodes)
         held = self._held_gps.pop(top_small, [])
         self._held_gps.setdefault(self._top(big), []).extend(held)
         self._release_gps(self._top(big))
@@ -364,7 +370,11 @@ class OnlineH2O:
         for edge in self.pending:
             self.waiting[edge] = self.waiting.get(edge, 0) + 1
         report.deferred = len(self.pending)
-        if budget_s is not None:
+        if self.pending and report.relaxed == 0:
+            # Nothing fit: the margin learnt from one slow sample must not lock the queue
+            # for good, since only updates that run produce new samples.
+            self.cost.spread = max(1.1, 0.9 * self.cost.spread)
+        if budget_s is not None and not self.pending:
             self._revisit(deadline, report)
         report.elapsed_s = self._clock() - start
         return report

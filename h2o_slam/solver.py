@@ -600,12 +600,16 @@ class H2OSolver:
         R, t = self.tree.chain_poses(np.array(chain[::-1], dtype=np.int64))
         return R[-1], t[-1]
 
-    def reparent(self, node: int, parent: int, edge: int, refresh: bool = True) -> set[int]:
+    def reparent(
+        self, node: int, parent: int, edge: int, refresh: bool = True
+    ) -> tuple[list[int], set[int]]:
         """Hang ``node`` under ``parent`` (tied by ``edge``), keeping every world pose.
 
         Paths through the moved subtree change, so the edges touching it get new domains and
         new contributions to ``B`` (thesis 3.3.9). With ``refresh=False`` the caller refreshes
         the returned edges itself (:meth:`refresh_edges`), once for many re-parentings.
+
+        Returns the moved subtree (its depths changed) and the edges whose paths changed.
         """
         R_n, t_n = self.world_pose(node)
         R_p, t_p = self.world_pose(parent) if parent != EARTH else (np.eye(3), np.zeros(3))
@@ -620,7 +624,7 @@ class H2OSolver:
             self._paths[e] = None
         if refresh:
             self.refresh_edges(affected)
-        return affected
+        return moved, affected
 
     def refresh_edges(self, edges: set[int] | list[int]) -> None:
         """Recompute the paths and ``B`` contributions of edges whose paths changed."""

@@ -1,0 +1,248 @@
+"""Online H₂O (3.3.9–3.3.13): tree balancing and merging, GPS, the budgeted step, the guard."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import shortest_path
+
+from h2o_slam import geometry as geo
+from h2o_slam import solver as solver_module
+from h2o_slam.graph import EARTH, EdgeKind, chi2, make_graph
+from h2o_slam.modes import add_arrival, arrivals, solve_offline, solve_online
+from h2o_slam.online import OnlineConfig, OnlineH2O, best_fit_transform
+from h2o_slam.solver import SolverConfig
+from h2o_slam.synthetic import grid3d, manhattan
+
+
+def _feed(graph, online=None, budget_s=None, config=None):
+    h2o = OnlineH2O(graph.planar, config, online)
+    reports = []
+    for node, edges in enumerate(arrivals(graph)):
+        add_arrival(h2o, graph, node, edges)
+        reports.append(h2o.step(budget_s))
+    return h2o, reports
+
+
+def sphere_graph(rings: int = 12, per_ring: int = 20, seed: int = 0):
+    """Fig. 3.6's sphere: a spiral of poses over a sphere, odometry along the spiral and loop
+    closures to the pose one ring below. Grown naively, its tree is the spiral itself."""
+    rng = np.random.default_rng(seed)
+    n = rings * per_ring
+    k = np.arange(n)
+    lat = -np.pi / 2 + np.pi * (k + 0.5) / n
+    lon = 2 * np.pi * k / per_ring
+    t = 10 * np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], 1)
+    R = geo.so3_exp(np.stack([np.zeros(n), -lat, lon], 1))
+    pairs = [(i, i + 1) for i in range(n - 1)] + [(i, i + per_ring) for i in range(n - per_ring)]
+    a = np.array([p[0] for p in pairs])
+    b = np.array([p[1] for p in pairs])
+    mR, mt = geo.between(R[a], t[a], R[b], t[b])
+    mt = mt + 0.01 * rng.standard_normal(mt.shape)
+    info = np.tile(np.eye(6) * 100.0, (len(pairs), 1, 1))
+    kind = np.zeros(len(pairs), dtype=np.int8)
+    return make_graph(False, k, R, t, kind, a, b, mR, mt, info)
+
+
+def _bfs_depths(graph, root=0):
+    rel = graph.kind == EdgeKind.RELATIVE
+    n = graph.num_nodes
+    adj = coo_matrix((np.ones(rel.sum()), (graph.a[rel], graph.b[rel])), shape=(n, n))
+    return shortest_path(adj, directed=False, unweighted=True, indices=[root])[0] + 1
+
+
+def test_balanced_tree_depth_is_the_breadth_first_depth_on_the_sphere():
+    graph = sphere_graph()
+    naive, _ = _feed(graph, OnlineConfig(balance=False))
+    balanced, _ = _feed(graph)
+    depth_naive = naive.solver.tree.depth[: graph.num_nodes]
+    depth = balanced.solver.tree.depth[: graph.num_nodes]
+    assert depth_naive.max() == graph.num_nodes  # the spiral: linear growth
+    # Balancing makes every depth the graph distance to the root: no tree does better.
+    assert np.array_equal(depth, _bfs_depths(graph).astype(int))
+    assert depth.max() < graph.num_nodes / 8
+
+
+@pytest.mark.parametrize("make", [lambda: manhattan(200, seed=4).graph,
+                                  lambda: grid3d(80, seed=2).graph])
+def test_every_depth_is_at_most_a_neighbour_depth_plus_one(make):
+    graph = make()
+    h2o = OnlineH2O(graph.planar)
+    for node, edges in enumerate(arrivals(graph)):
+        add_arrival(h2o, graph, node, edges)
+        h2o.step(None)
+        solver = h2o.solver
+        depth = solver.tree.depth
+        rel = solver.kind == EdgeKind.RELATIVE
+        a, b = solver.a[rel], solver.b[rel]
+        assert np.all(depth[a] <= depth[b] + 1) and np.all(depth[b] <= depth[a] + 1)
+
+
+def test_rebalancing_keeps_poses_and_the_regularizer_consistent():
+    graph = manhattan(150, seed=8).graph
+    h2o, _ = _feed(graph, OnlineConfig(balance=False))
+    solver = h2o.solver
+    R0, t0 = solver.world_poses()
+    h2o.online = OnlineConfig()
+    for e in range(solver.num_edges):
+        if solver.kind[e] == EdgeKind.RELATIVE:
+            h2o._maybe_rebalance(e)
+    assert h2o.balance()
+    R1, t1 = solver.world_poses()
+    assert np.allclose(R0, R1, atol=1e-9) and np.allclose(t0, t1, atol=1e-9)
+    total = np.zeros_like(solver.B[: solver.num_nodes])
+    for e, (nodes, blocks) in enumerate(solver._contrib):
+        np.add.at(total, nodes, blocks)
+        assert np.array_equal(nodes, solver.path(e).domain)
+    assert np.allclose(total, solver.B[: solver.num_nodes])
+    assert solver.tree.depth[: solver.num_nodes].max() < 0.5 * graph.num_nodes
+
+
+def test_separate_trees_merge_through_a_joining_edge():
+    graph = manhattan(120, seed=3).graph
+    cut = 60
+    keep = ~((np.minimum(graph.a, graph.b) < cut) & (np.maximum(graph.a, graph.b) >= cut))
+    joins = np.flatnonzero(~keep)
+    h2o = OnlineH2O(True)
+    for node in range(graph.num_nodes):
+        edges = [e for e in np.flatnonzero(keep) if max(graph.a[e], graph.b[e]) == node]
+        if node == 0:
+            h2o.add_pose(graph.R[0], graph.t[0])
+        if node == cut:
+            h2o.add_pose(np.eye(3), np.array([100.0, 0.0, 0.0]))  # a second, far-away tree
+        for e in sorted(edges, key=lambda e: -min(graph.a[e], graph.b[e])):
+            h2o.add_edge(int(graph.kind[e]), int(graph.a[e]), int(graph.b[e]),
+                         graph.meas_R[e], graph.meas_t[e], graph.info[e])
+        h2o.step(None)
+    solver = h2o.solver
+    assert np.sum(solver.tree.parent[: solver.num_nodes] == EARTH) == 2
+    first = joins[0]
+    h2o.add_edge(int(graph.kind[first]), int(graph.a[first]), int(graph.b[first]),
+                 graph.meas_R[first], graph.meas_t[first], graph.info[first])
+    assert np.sum(solver.tree.parent[: solver.num_nodes] == EARTH) == 1
+    # The smaller tree was moved onto the joining edge: that edge starts satisfied.
+    assert np.linalg.norm(solver.residual(solver.num_edges - 1)) < 1e-6
+    for e in joins[1:]:
+        h2o.add_edge(int(graph.kind[e]), int(graph.a[e]), int(graph.b[e]),
+                     graph.meas_R[e], graph.meas_t[e], graph.info[e])
+    h2o.step(None)
+    R, t = solver.world_poses()
+    assert chi2(graph, R, t) < 10 * solve_offline(graph, passes=5).chi2_final
+
+
+def test_budgeted_step_never_starts_work_predicted_to_overrun():
+    graph = manhattan(300, seed=6).graph
+    h2o, reports = _feed(graph, budget_s=2e-3)
+    started = [p for r in reports for p in r.predictions]
+    assert len(started) > 0.5 * graph.num_edges
+    assert all(predicted <= remaining for predicted, remaining in started)
+
+
+def test_edges_that_do_not_fit_wait_for_a_later_step():
+    graph = manhattan(80, seed=1).graph
+    h2o = OnlineH2O(True)
+    for node, edges in enumerate(arrivals(graph)):
+        add_arrival(h2o, graph, node, edges)
+        report = h2o.step(1e-7)
+        assert report.relaxed == 0 and report.predictions == []
+    assert len(h2o.pending) == graph.num_edges
+    report = h2o.step(None)
+    assert report.relaxed == graph.num_edges and not h2o.pending
+
+
+def test_small_budgets_use_interpolated_updates_on_long_loops():
+    graph = sphere_graph(rings=10, per_ring=30)
+    h2o, reports = _feed(graph, OnlineConfig(balance=False, d_max=4), budget_s=5e-3)
+    assert min(r.smallest_d_max for r in reports if r.smallest_d_max) <= 4
+    R, t = h2o.solver.world_poses()
+    full = solve_online(graph)
+    assert chi2(graph, R, t) < 2 * full.chi2_final
+
+
+def test_guard_undoes_an_update_that_raises_the_energy(monkeypatch):
+    graph = manhattan(40, seed=2).graph
+    h2o, _ = _feed(graph)
+    solver = h2o.solver
+    loop = next(e for e in range(solver.num_edges) if len(solver.path(e).domain) > 3)
+    real = solver_module.solve_hybrid
+    monkeypatch.setattr(solver_module, "solve_hybrid", lambda J, r, B: -20 * real(J, r, B))
+    before = solver.tree.R.copy(), solver.tree.t.copy()
+    outcome = solver.relax(loop, guard=True, scale=1.0)
+    assert not outcome.accepted and outcome.energy_after > outcome.chi2_before
+    assert np.array_equal(solver.tree.R, before[0]) and np.array_equal(solver.tree.t, before[1])
+
+
+def _dog_leg_graph(batch_size_unused=None, n=61, every=5, heading=0.5):
+    """A straight 60 m drive east whose start heading is off by ``heading`` rad, with GPS
+    fixes along the true line: Fig. 3.7's case for batching GPS edges."""
+    k = np.arange(n)
+    truth_t = np.stack([k * 1.0, np.zeros(n), np.zeros(n)], 1)
+    R = np.tile(np.eye(3), (n, 1, 1))
+    a, b = k[:-1], k[1:]
+    mR, mt = geo.between(R[a], truth_t[a], R[b], truth_t[b])
+    gps = k[::every]
+    info_odo = np.tile(np.diag([1e4, 1e4, 0, 0, 0, 1e4]), (n - 1, 1, 1))
+    info_gps = np.tile(np.diag([1.0, 1.0, 0, 0, 0, 0]), (len(gps), 1, 1))
+    start_R = geo.yaw_to_matrix(np.full(n, heading))
+    start_t = np.stack([k * np.cos(heading), k * np.sin(heading), np.zeros(n)], 1)
+    return make_graph(
+        True, k, start_R, start_t,
+        np.concatenate([np.zeros(n - 1, np.int8), np.full(len(gps), EdgeKind.POSITION)]),
+        np.concatenate([a, np.full(len(gps), EARTH)]), np.concatenate([b, gps]),
+        np.concatenate([mR, np.tile(np.eye(3), (len(gps), 1, 1))]),
+        np.concatenate([mt, truth_t[gps]]), np.concatenate([info_odo, info_gps]),
+    )
+
+
+def test_batched_gps_beats_one_at_a_time_on_the_dog_leg():
+    graph = _dog_leg_graph()
+    single = solve_offline(graph, passes=3, config=SolverConfig(gps_batch_size=1),
+                           init="input")
+    batched = solve_offline(graph, passes=3, config=SolverConfig(gps_batch_size=30),
+                            init="input")
+    assert batched.chi2_final < 0.1 * single.chi2_final
+    # One at a time, each fix bends the path and turns the poses off the direction of travel.
+    yaw_single = np.abs(geo.matrix_to_yaw(single.R)).max()
+    yaw_batched = np.abs(geo.matrix_to_yaw(batched.R)).max()
+    assert yaw_batched < 0.5 * yaw_single
+
+
+def test_gps_edges_wait_for_three_then_the_subtree_is_fitted():
+    graph = _dog_leg_graph(every=10)
+    h2o = OnlineH2O(True)
+    waiting = []
+    for node, edges in enumerate(arrivals(graph)):
+        add_arrival(h2o, graph, node, edges)
+        waiting.append(sum(len(v) for v in h2o._held_gps.values()))
+        h2o.step(None)
+    assert waiting[0] == 1 and waiting[10] == 2 and waiting[20] == 0
+    R, t = h2o.solver.world_poses()
+    assert np.abs(geo.matrix_to_yaw(R)).max() < 0.05
+    assert np.abs(t[:, 1]).max() < 0.5
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_best_fit_transform_recovers_a_rigid_motion(planar):
+    rng = np.random.default_rng(1)
+    P = rng.normal(size=(6, 3))
+    if planar:
+        P[:, 2] = 0.0
+        R = geo.yaw_to_matrix(0.7)
+        t = np.array([3.0, -1.0, 0.0])
+    else:
+        R = geo.so3_exp(np.array([0.3, -0.5, 0.9]))
+        t = np.array([3.0, -1.0, 2.0])
+    Q = P @ R.T + t
+    R_fit, t_fit = best_fit_transform(P, Q, np.ones(6), planar)
+    assert np.allclose(R_fit, R) and np.allclose(t_fit, t)
+
+
+def test_online_budget_through_solve_online():
+    graph = manhattan(200, seed=9).graph
+    result = solve_online(graph, passes=3, budget_s=5e-3, trace_every=20)
+    assert len(result.per_callback_ms) == graph.num_nodes
+    assert result.chi2_final < result.chi2_initial
+    assert len(result.chi2_trace) >= graph.num_nodes // 20
+    times = [s for s, _ in result.chi2_trace]
+    assert times == sorted(times)
