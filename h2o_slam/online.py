@@ -197,16 +197,17 @@ class OnlineH2O:
                    and self._top(a) != self._top(b))
         edge = solver.add_edge(kind, a, b, meas_R, meas_t, info)
         self._grow_priority()
+        self._priority[edge] = solver.last_chi2
+        creates_node = solver.num_nodes > n
         if merging:
             self._merge(edge)
         elif kind == EdgeKind.RELATIVE and a < n and b < n and self.online.balance:
             self._maybe_rebalance(edge)
-        if kind == EdgeKind.RELATIVE:
-            self.pending.append(edge)
-        else:
+        if kind != EdgeKind.RELATIVE:
             self._add_global(edge)
-        r = solver.residual(edge)
-        self._priority[edge] = float(r @ r)
+        elif not (creates_node and solver.last_chi2 <= 1e-18):
+            # A new node's own tree edge starts satisfied: relaxing it would change nothing.
+            self.pending.append(edge)
         return edge
 
     def _grow_priority(self) -> None:

@@ -96,6 +96,11 @@ class RelaxOutcome:
 def whitening(info: Array, dof: np.ndarray) -> Array:
     """``W`` with ``Wᵀ W = S`` for information matrices ``S`` restricted to ``dof``."""
     S = info[..., dof[:, None], dof[None, :]]
+    if S.ndim == 2:
+        try:  # The common case, a positive definite matrix: Cholesky is the cheap factor.
+            return np.linalg.cholesky(S).T
+        except np.linalg.LinAlgError:
+            pass  # semi-definite (a GPS edge's rotation rows): the eigen factor below
     lam, U = np.linalg.eigh(S)
     return np.sqrt(np.maximum(lam, 0.0))[..., :, None] * np.swapaxes(U, -1, -2)
 
@@ -123,6 +128,8 @@ class H2OSolver:
         self._contrib: list[tuple[np.ndarray, Array] | None] = []
         self._gps_at: dict[int, list[int]] = {}
         self._incident: dict[int, list[int]] = {}
+        #: χ² of the edge most recently added, at the moment it was added.
+        self.last_chi2 = 0.0
 
     # -- building -----------------------------------------------------------------------------
 
@@ -208,8 +215,10 @@ class H2OSolver:
             raise GraphError("relative edges join two nodes; global edges start at the earth")
         edge = self._append_edge(kind, a, b, meas_R, meas_t, info)
         lin = self.linearize(edge)
-        self.B[lin.domain] += _gram(lin.J)
-        self._contrib[edge] = (lin.domain, _gram(lin.J))
+        contrib = _gram(lin.J)
+        self.B[lin.domain] += contrib
+        self._contrib[edge] = (lin.domain, contrib)
+        self.last_chi2 = float(lin.r @ lin.r)
         return edge
 
     def _append_edge(
