@@ -98,7 +98,7 @@ def whitening(info: Array, dof: np.ndarray) -> Array:
     S = info[..., dof[:, None], dof[None, :]]
     if S.ndim == 2:
         try:  # The common case, a positive definite matrix: Cholesky is the cheap factor.
-            return np.linalg.cholesky(S).T
+            return np.asarray(np.linalg.cholesky(S).T, dtype=float)
         except np.linalg.LinAlgError:
             pass  # semi-definite (a GPS edge's rotation rows): the eigen factor below
     lam, U = np.linalg.eigh(S)
