@@ -44,6 +44,9 @@ class OnlineConfig:
         d_max_min: fewest nodes worth solving for; an edge that cannot fit this waits.
         balance: keep the tree balanced (3.3.9).
         balance_share: fraction of a budget the rebalancing queue may use before new edges.
+        balance_max_subtree: largest subtree a rebalancing step re-parents; moving one costs
+            time in its size (every path through it changes), and a budget cannot absorb
+            thousands of nodes at once. ``None``: no limit.
         gps_align_count: GPS edges a subtree needs before its global pose is fitted (3.3.10).
         guard: undo updates that raise the energy, retrying at half the step.
         guard_retries: halvings tried before an update is skipped.
@@ -56,6 +59,7 @@ class OnlineConfig:
     d_max_min: int = 2
     balance: bool = True
     balance_share: float = 0.3
+    balance_max_subtree: int | None = 256
     gps_align_count: int = 3
     guard: bool = True
     guard_retries: int = 3
@@ -195,10 +199,14 @@ class OnlineH2O:
         n = solver.num_nodes
         merging = (kind == EdgeKind.RELATIVE and a < n and b < n
                    and self._top(a) != self._top(b))
-        edge = solver.add_edge(kind, a, b, meas_R, meas_t, info)
+        edge = solver.add_edge(kind, a, b, meas_R, meas_t, info, contribute=False)
         self._grow_priority()
-        self._priority[edge] = solver.last_chi2
         creates_node = solver.num_nodes > n
+        if creates_node:
+            self._priority[edge] = solver.last_chi2
+        else:  # linearized later, within a budget
+            self._stale[edge] = None
+            self._priority[edge] = np.inf
         if merging:
             self._merge(edge)
         elif kind == EdgeKind.RELATIVE and a < n and b < n and self.online.balance:
@@ -233,6 +241,9 @@ class OnlineH2O:
     def _hang(self, node: int, parent: int, edge: int) -> None:
         """Re-parent ``node`` and queue its whole subtree: every depth in it dropped, so any
         of their neighbours may now hang lower too (3.3.9's recursion)."""
+        limit = self.online.balance_max_subtree
+        if limit is not None and self.solver.tree.subtree_exceeds(node, limit):
+            return
         moved, affected = self.solver.reparent(node, parent, edge, refresh=False)
         self._stale.update(dict.fromkeys(affected))
         self._balance_queue.extend(moved)
@@ -241,6 +252,9 @@ class OnlineH2O:
         """Work through the rebalancing queue (breadth-first from re-parented nodes), then
         refresh the regularizer contributions of edges whose paths changed, until both are
         done or ``deadline`` passes. Returns whether both are done."""
+        return self._rebalance(deadline) and self._refresh_stale(deadline)
+
+    def _rebalance(self, deadline: float) -> bool:
         solver = self.solver
         depth = solver.tree.depth
         while self._balance_queue and self._clock() < deadline:
@@ -251,11 +265,23 @@ class OnlineH2O:
                 n = int(solver.b[e]) if int(solver.a[e]) == u else int(solver.a[e])
                 if depth[n] > depth[u] + 1:
                     self._hang(n, u, e)
-        while self._stale and self._clock() < deadline:
-            edge = next(iter(self._stale))
+        return not self._balance_queue
+
+    def _refresh_stale(self, deadline: float) -> bool:
+        """Linearize edges whose contribution to ``B`` is missing or belongs to an old path,
+        each only if the cost model says it fits (a refresh costs about what an update
+        solving no node costs). Relaxing a stale edge refreshes it too."""
+        margin = max(self.online.safety, self.cost.spread)
+        for edge in list(self._stale):
+            remaining = deadline - self._clock()
+            if remaining <= 0.0:
+                break
+            d = len(self.solver.path(edge).domain)
+            if self.cost.predict(d, 0) * margin > remaining:
+                continue
             del self._stale[edge]
-            solver.refresh_edges([edge])
-        return not self._balance_queue and not self._stale
+            self.solver.refresh_edges([edge])
+        return not self._stale
 
     def _merge(self, edge: int) -> None:
         """Join two trees through ``edge``: the smaller one is re-rooted at its endpoint and
@@ -360,14 +386,9 @@ class OnlineH2O:
         report = StepReport()
         if self.online.balance:
             share = float("inf") if budget_s is None else self.online.balance_share * budget_s
-            report.balanced = self.balance(min(deadline, start + share))
-        while self.pending:
-            edge = self.pending[0]
-            if not self._relax_within(edge, deadline, report):
-                break
-            self.pending.popleft()
-            self.waiting.pop(edge, None)
-            report.relaxed += 1
+            self._rebalance(min(deadline, start + share))
+        self._relax_new(deadline, report)
+        report.balanced = self._refresh_stale(deadline) and not self._balance_queue
         for edge in self.pending:
             self.waiting[edge] = self.waiting.get(edge, 0) + 1
         report.deferred = len(self.pending)
@@ -379,6 +400,24 @@ class OnlineH2O:
             self._revisit(deadline, report)
         report.elapsed_s = self._clock() - start
         return report
+
+    def _relax_new(self, deadline: float, report: StepReport, skips: int = 8) -> None:
+        """New edges in arrival order. One that does not fit stays queued (in order) and the
+        next ones are tried, so a long loop closure cannot hold up the cheap edges behind it;
+        after ``skips`` misfits in a row the rest waits too."""
+        kept: deque[int] = deque()
+        misses = 0
+        while self.pending and misses < skips and self._clock() < deadline:
+            edge = self.pending.popleft()
+            if self._relax_within(edge, deadline, report):
+                self.waiting.pop(edge, None)
+                report.relaxed += 1
+                misses = 0
+            else:
+                kept.append(edge)
+                misses += 1
+        kept.extend(self.pending)
+        self.pending = kept
 
     def _revisit(self, deadline: float, report: StepReport) -> None:
         """Spend the time left on old edges, highest residual first.

@@ -186,13 +186,16 @@ class H2OSolver:
         return node
 
     def add_edge(
-        self, kind: int, a: int, b: int, meas_R: Array, meas_t: Array, info: Array
+        self, kind: int, a: int, b: int, meas_R: Array, meas_t: Array, info: Array,
+        contribute: bool = True,
     ) -> int:
         """Add an edge (Algorithm 2 without rebalancing) and return its index.
 
         ``b == num_nodes`` (or ``a == num_nodes`` for a relative edge) adds that node as the
         other endpoint's child, initialized through this edge's measurement. The edge's
-        contribution is added to the regularizer ``B``.
+        contribution is added to the regularizer ``B`` — at once, or (``contribute=False``,
+        for a caller on a time budget: it costs time in the edge's path length) when the edge
+        is first relaxed or refreshed.
 
         Raises:
             GraphError: an endpoint does not exist, or a global edge would create a node.
@@ -214,6 +217,9 @@ class H2OSolver:
         if (kind == EdgeKind.RELATIVE) == (a == EARTH):
             raise GraphError("relative edges join two nodes; global edges start at the earth")
         edge = self._append_edge(kind, a, b, meas_R, meas_t, info)
+        if not contribute and self.num_nodes == n:
+            self.last_chi2 = math.nan
+            return edge
         lin = self.linearize(edge)
         contrib = _gram(lin.J)
         self.B[lin.domain] += contrib
@@ -383,7 +389,10 @@ class H2OSolver:
 
     def _regularizer_without(self, edge: int, domain: np.ndarray) -> Array:
         """``B_c``: the regularizer blocks of ``domain`` without ``edge``'s own contribution."""
-        old_nodes, old_blocks = self._contrib[edge]  # type: ignore[misc]
+        old = self._contrib[edge]
+        if old is None:  # added without a contribution yet
+            return self.B[domain]
+        old_nodes, old_blocks = old
         if np.array_equal(old_nodes, domain):
             return self.B[domain] - old_blocks
         # The tree changed since this edge last contributed.
@@ -462,8 +471,9 @@ class H2OSolver:
             B_c = np.zeros((len(nodes), self.p, self.p))
         else:
             for e in edges:
-                old_nodes, old_blocks = self._contrib[e]  # type: ignore[misc]
-                np.subtract.at(self.B, old_nodes, old_blocks)
+                old = self._contrib[e]
+                if old is not None:
+                    np.subtract.at(self.B, old[0], old[1])
             B_c = self.B[nodes]
         J, r = self._stack(lins, nodes)
         x = _solve_regularized(J, r, B_c).reshape(len(nodes), self.p)

@@ -90,6 +90,17 @@ class PoseTree:
             i += 1
         return out
 
+    def subtree_exceeds(self, node: int, limit: int) -> bool:
+        """Whether ``node``'s subtree has more than ``limit`` nodes (stops counting there)."""
+        todo = [node]
+        count = 0
+        while todo:
+            count += 1
+            if count > limit:
+                return True
+            todo.extend(self.children(todo.pop()))
+        return False
+
     def reparent(self, node: int, parent: int, R_local: Array, t_local: Array) -> list[int]:
         """Hang ``node`` (with its subtree) under ``parent`` with a new local transform.
 
