@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from h2o_slam import geometry as geo
+from h2o_slam.errors import H2OError
 from h2o_slam.g2o import read_g2o
 from h2o_slam.graph import EdgeKind, PoseGraph, chi2
 
@@ -398,12 +399,14 @@ def _command() -> str:
     return shlex.join([str(exe), str(script), *sys.argv[1:]])
 
 
-def render_section(results: list[GraphResult]) -> str:
+def render_section(results: list[GraphResult], skipped: list[str]) -> str:
     """The ``## Solvers`` section of RESULTS.md."""
+    skip = "".join(f"- skipped {s}\n" for s in skipped)
+    skip = f"Graphs that could not be read:\n\n{skip}\n" if skip else ""
     when = dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
     return (f"{SECTION}\n\nCommand (from the repo root): `{_command()}`\n\n"
             f"Date: {when}. Machine: {_machine()}. Timings are indicative (shared machine).\n\n"
-            f"{format_tables(results)}\n\n{NOTES}")
+            f"{format_tables(results)}\n\n{skip}{NOTES}")
 
 
 def write_section(path: Path, section: str) -> None:
@@ -445,8 +448,14 @@ def run(data: Path, names: list[str] | None, timeout_s: float, out_dir: Path | N
     with tempfile.TemporaryDirectory(prefix="h2o-bench-") as tmp:
         target = out_dir if out_dir is not None else Path(tmp)
         target.mkdir(parents=True, exist_ok=True)
-        results = [bench_graph(p, target, timeout_s) for p in paths]
-    section = render_section(results)
+        results, skipped = [], []
+        for p in paths:
+            try:
+                results.append(bench_graph(p, target, timeout_s))
+            except H2OError as err:  # the input itself cannot be read: no solver can run
+                print(f"solvers.py: skipping {p.name}: {err}", file=sys.stderr)
+                skipped.append(f"{p.stem}: {err}")
+    section = render_section(results, skipped)
     print(section)
     write_section(results_path, section)
     print(f"written to {results_path}", file=sys.stderr)

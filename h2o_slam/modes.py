@@ -78,9 +78,11 @@ def build_solver(
     if init == "tree":
         graph = graph.with_estimate(*tree_estimate(graph, parents))
     elif init == "lago":
-        from h2o_slam.lago import lago_estimate
+        from h2o_slam.lago import lago
 
-        graph = graph.with_estimate(*lago_estimate(graph))
+        # LAGO starts from the relative edges; GPS edges are H₂O's to relax afterwards.
+        start = lago(graph, ignore_global=True)
+        graph = graph.with_estimate(start.R, start.t)
     return H2OSolver.from_graph(graph, parents, config), graph
 
 

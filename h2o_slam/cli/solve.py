@@ -128,7 +128,10 @@ def solve_file(
         added = graph.num_edges - before
     passes = DEFAULT_PASSES[opt.mode] if opt.passes is None else opt.passes
     start = time.perf_counter()
-    result = _solve(graph, opt, passes)
+    try:
+        result = _solve(graph, opt, passes)
+    except InputError as err:  # e.g. LAGO refusing a 3-D graph: say which file
+        raise InputError(f"{input_path}: {err}") from None
     wall_s = time.perf_counter() - start
     write_g2o(output_path, graph, result.R, result.t)
     online = opt.solver == "h2o" and opt.mode == "online"
