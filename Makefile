@@ -67,6 +67,8 @@ test: venv
 
 bench: $(BENCH_STAMP)
 	$(PY) bench/solvers.py
+	$(PY) bench/lago.py
+	$(PY) bench/online.py
 
 clean:
 	rm -rf build install log out
