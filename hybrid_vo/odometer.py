@@ -1,0 +1,489 @@
+"""The hybrid wheel/visual odometer (thesis ch. 2): one verb, :meth:`HybridOdometer.process`.
+
+Per stereo frame and wheel increment since the previous frame:
+
+1. downsample to the working resolution (thesis: 160×120) and remap the left image's
+   horizon band to the spherical image through the precomputed table (2.1)–(2.2);
+2. sample ``num_patches`` patches at Harris corners in ``−θ_max < θ < θ_max`` of the
+   *previous* spherical image — or, when wheel odometry says the turn would carry that region
+   off the image, in the region that will become frontal (§2.3.3);
+3. drop patches nearer than ``r_min`` of (2.3), measured by per-patch stereo;
+4. search each patch by NCC in a window spanning its previous position and the one predicted
+   by the wheel yaw, inflated by half a patch;
+5. cross-validate the patches' yaw estimates by vote (§2.3.4);
+6. replace the wheel yaw by the visual one with the midpoint rule (2.4); yaw σ from the
+   curvature of the NCC peaks (§2.3.5).
+
+When too few patches survive or no consensus forms, the frame defers to wheel odometry and
+says why (:class:`FallbackReason`). Increments are ``(dx_m, dy_m, dyaw_rad)`` of the new
+``base_link`` pose in the previous one (``T_prev⁻¹ T_new``); wheel increments use the same
+convention (what consecutive ``nav_msgs/Odometry`` poses give).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from hybrid_vo import patches as pt
+from hybrid_vo.camera import CameraIntrinsics, CameraMounting, SphericalMap
+from hybrid_vo.errors import ConfigError, FrameError
+from hybrid_vo.frames import StereoFrame
+
+FloatArray = NDArray[np.float64]
+Float32Array = NDArray[np.float32]
+
+
+class FallbackReason(enum.Enum):
+    """Why a frame's increment came from wheel odometry alone (``NONE``: it did not)."""
+
+    NONE = "none"
+    FIRST_FRAME = "first_frame"  # nothing to compare with yet
+    BLANK_VIEW = "blank_view"  # too few corners in the sampling region (sky, fog, lens cap)
+    NEAR_FEATURES = "near_features"  # too few patches beyond r_min (2.3): the view is blocked
+    POOR_MATCH = "poor_match"  # too few patches found again with enough correlation
+    NO_CONSENSUS = "no_consensus"  # the vote (§2.3.4) left no inlier
+
+
+@dataclass(frozen=True)
+class OdometerConfig:
+    """Parameters of the hybrid odometer; defaults follow the thesis (§2.3–2.4).
+
+    Attributes:
+        work_width_px: images are downsampled to this width (thesis: 160); the height keeps
+            the camera's aspect ratio (120 for a 4:3 camera).
+        num_patches: patches sampled per frame (thesis: 6).
+        patch_width_px, patch_height_px: patch size in spherical pixels (thesis: 13×3).
+        band_half_height_rad: the spherical image covers this much pitch above and below
+            the horizon.
+        theta_max_rad: half-width of the sampling region about the frontal direction;
+            None derives it from the mounting as the thesis does (the bearing of the image
+            side nearest to the frontal direction, less half a patch), capped at
+            ``theta_max_cap_rad``.
+        max_speed_m_s, frame_rate_hz: give ``d = max_speed / frame_rate``, the largest travel
+            between frames in (2.3) (thesis: 1.3 m/s at 10 Hz → 0.13 m).
+        candidate_factor: up to ``candidate_factor · num_patches`` corners are range-tested,
+            strongest first, until ``num_patches`` pass (2.3).
+        min_patches: fewer surviving patches → defer to wheel odometry.
+        min_ncc: a patch match below this normalized cross-correlation is discarded.
+        harris_min_response: corner threshold relative to the band's contrast; a blank view
+            has none above it.
+        stereo_max_disparity_px, stereo_min_ncc, stereo_half_width_px,
+        stereo_half_height_px: per-patch stereo range (working resolution).
+        fallback_yaw_sigma_rad: yaw σ reported on frames that defer to the wheels.
+        yaw_sigma_floor_rad: lower bound of the reported yaw σ (never a zero covariance).
+        sigma_merge: ``"thesis"`` (as printed) or ``"inverse_variance"``; see
+            :func:`hybrid_vo.patches.merge_sigmas`.
+    """
+
+    work_width_px: int = 160
+    num_patches: int = 6
+    patch_width_px: int = 13
+    patch_height_px: int = 3
+    band_half_height_rad: float = 0.1
+    theta_max_rad: float | None = None
+    theta_max_cap_rad: float = 0.14
+    max_speed_m_s: float = 1.3
+    frame_rate_hz: float = 10.0
+    candidate_factor: int = 3
+    min_patches: int = 3
+    min_ncc: float = 0.75
+    harris_min_response: float = 1e-5
+    stereo_max_disparity_px: int = 40
+    stereo_min_ncc: float = 0.6
+    stereo_half_width_px: int = 4
+    stereo_half_height_px: int = 2
+    fallback_yaw_sigma_rad: float = 0.02
+    yaw_sigma_floor_rad: float = 1e-4
+    sigma_merge: Literal["thesis", "inverse_variance"] = "thesis"
+
+    def __post_init__(self) -> None:
+        def positive(name: str) -> None:
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"{name} must be finite and > 0, got {value!r}")
+
+        for name in (
+            "work_width_px",
+            "num_patches",
+            "band_half_height_rad",
+            "theta_max_cap_rad",
+            "max_speed_m_s",
+            "frame_rate_hz",
+            "min_patches",
+            "candidate_factor",
+            "stereo_max_disparity_px",
+            "stereo_half_width_px",
+            "stereo_half_height_px",
+            "fallback_yaw_sigma_rad",
+            "yaw_sigma_floor_rad",
+        ):
+            positive(name)
+        if self.theta_max_rad is not None:
+            positive("theta_max_rad")
+        for name in ("patch_width_px", "patch_height_px"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 3 or value % 2 == 0:
+                raise ConfigError(f"{name} must be an odd integer >= 3, got {value!r}")
+        if self.work_width_px < 32:
+            raise ConfigError(f"work_width_px must be >= 32, got {self.work_width_px!r}")
+        if self.min_patches > self.num_patches:
+            raise ConfigError(
+                f"min_patches ({self.min_patches}) cannot exceed num_patches ({self.num_patches})"
+            )
+        for name in ("min_ncc", "stereo_min_ncc"):
+            value = getattr(self, name)
+            if not -1.0 < value < 1.0:
+                raise ConfigError(f"{name} must lie in (-1, 1), got {value!r}")
+        if self.harris_min_response < 0:
+            raise ConfigError(
+                f"harris_min_response must be >= 0, got {self.harris_min_response!r}"
+            )
+        if self.sigma_merge not in ("thesis", "inverse_variance"):
+            raise ConfigError(
+                f"sigma_merge must be 'thesis' or 'inverse_variance', got {self.sigma_merge!r}"
+            )
+
+    @property
+    def max_travel_m(self) -> float:
+        """``d`` of (2.3): the largest travel between two frames."""
+        return self.max_speed_m_s / self.frame_rate_hz
+
+
+@dataclass(frozen=True)
+class OdometryUpdate:
+    """What one call of :meth:`HybridOdometer.process` returns.
+
+    Attributes:
+        stamp_ns: the frame's stamp.
+        dx_m, dy_m, dyaw_rad: corrected increment of ``base_link`` in the previous
+            ``base_link``.
+        yaw_sigma_rad: standard deviation of ``dyaw_rad``.
+        fallback: why the wheels supplied the increment, or ``FallbackReason.NONE``.
+        pose: ``(x_m, y_m, yaw_rad)`` integrated in ``odom`` after this frame.
+        num_sampled, num_far, num_matched, num_inliers: patches at each stage
+            (``num_sampled``: corners range-tested).
+        cpu_time_s: process CPU time of this call.
+    """
+
+    stamp_ns: int
+    dx_m: float
+    dy_m: float
+    dyaw_rad: float
+    yaw_sigma_rad: float
+    fallback: FallbackReason
+    pose: tuple[float, float, float]
+    num_sampled: int = 0
+    num_far: int = 0
+    num_matched: int = 0
+    num_inliers: int = 0
+    cpu_time_s: float = 0.0
+
+    @property
+    def used_vision(self) -> bool:
+        """True when the yaw came from the visual tracker."""
+        return self.fallback is FallbackReason.NONE
+
+    @property
+    def delta(self) -> FloatArray:
+        """``(dx_m, dy_m, dyaw_rad)`` as an array ``(3,)``."""
+        return np.array([self.dx_m, self.dy_m, self.dyaw_rad])
+
+
+@dataclass
+class OdometerStats:
+    """Counters over the odometer's lifetime.
+
+    Attributes:
+        frames: frames processed.
+        deferred: frames whose increment came from the wheels alone (first frame included).
+        by_reason: deferred frames per :class:`FallbackReason` value.
+        cpu_time_total_s, cpu_time_last_s: CPU time spent in ``process``.
+    """
+
+    frames: int = 0
+    deferred: int = 0
+    by_reason: dict[str, int] = field(default_factory=dict)
+    cpu_time_total_s: float = 0.0
+    cpu_time_last_s: float = 0.0
+
+    @property
+    def deferred_fraction(self) -> float:
+        """Fraction of frames that deferred to wheel odometry."""
+        return self.deferred / self.frames if self.frames else 0.0
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    left: Float32Array  # working-resolution planar images
+    right: Float32Array
+    spherical: Float32Array
+
+
+class HybridOdometer:
+    """Wheel odometry with its yaw replaced by visual bearing tracking (thesis ch. 2).
+
+    Args:
+        intrinsics: the rectified stereo camera at the resolution frames arrive in.
+        mounting: the left camera's mounting on ``base_link`` (with the stereo baseline).
+        config: parameters; defaults from the thesis.
+    """
+
+    def __init__(
+        self,
+        intrinsics: CameraIntrinsics,
+        mounting: CameraMounting,
+        config: OdometerConfig | None = None,
+    ) -> None:
+        self.config = cfg = config if config is not None else OdometerConfig()
+        self.input_intrinsics = intrinsics
+        self.mounting = mounting
+        work_h = max(
+            16, int(round(intrinsics.height_px * cfg.work_width_px / intrinsics.width_px))
+        )
+        self.work_intrinsics = intrinsics.scaled(cfg.work_width_px, work_h)
+        self.spherical = SphericalMap.build(
+            self.work_intrinsics, mounting, cfg.band_half_height_rad
+        )
+        sph = self.spherical
+        rows, cols = sph.shape
+        if rows < cfg.patch_height_px + 2:
+            raise ConfigError(
+                f"the spherical band has {rows} rows, fewer than a patch needs "
+                f"({cfg.patch_height_px} + 2); raise band_half_height_rad"
+            )
+        self.frontal_col = float(sph.column_of_theta(0.0))
+        half_patch_rad = (cfg.patch_width_px // 2) * sph.a_rad_per_px
+        nearest_side_rad = min(self.frontal_col, cols - 1 - self.frontal_col) * sph.a_rad_per_px
+        if cfg.theta_max_rad is None:
+            theta_max = min(nearest_side_rad - half_patch_rad, cfg.theta_max_cap_rad)
+        else:
+            theta_max = cfg.theta_max_rad
+        if theta_max <= half_patch_rad:
+            raise ConfigError(
+                f"the frontal direction is not far enough inside the camera's view for "
+                f"sampling: theta_max {theta_max:.3f} rad <= half a patch "
+                f"({half_patch_rad:.3f} rad); check the mounting yaw"
+            )
+        self.theta_max_rad = theta_max
+        #: r_min of (2.3) at θ_max: nearer patches are dropped.
+        self.r_min_m = pt.r_min_m(cfg.max_travel_m, theta_max, sph.a_rad_per_px)
+        self.stats = OdometerStats()
+        self._prev: _Prepared | None = None
+        self._pose = np.zeros(3)
+
+    # ------------------------------------------------------------------ the verb
+
+    def process(self, frame: StereoFrame, wheel_delta: FloatArray) -> OdometryUpdate:
+        """Corrected increment for ``frame`` given the wheel increment since the last frame.
+
+        Args:
+            frame: rectified stereo pair at the intrinsics' resolution.
+            wheel_delta: ``(dx_m, dy_m, dyaw_rad)``, ``(3,)``, of the wheel odometry between
+                the previous frame and this one, in the previous ``base_link``.
+
+        Raises:
+            FrameError: images of the wrong size, dtype or channel count, or a non-finite
+                wheel increment. The odometer's state is unchanged.
+        """
+        t0 = time.process_time()
+        wheel = np.asarray(wheel_delta, dtype=float).reshape(-1)
+        if wheel.shape != (3,) or not np.all(np.isfinite(wheel)):
+            raise FrameError(f"wheel_delta must be 3 finite numbers, got {wheel_delta!r}")
+        cur = self._prepare(frame)
+        prev, self._prev = self._prev, cur
+        counts = (0, 0, 0, 0)
+        if prev is None:
+            reason = FallbackReason.FIRST_FRAME
+            result: tuple[float, float] | None = None
+        else:
+            result, reason, counts = self._track(prev, cur, float(wheel[2]))
+        cfg = self.config
+        if result is None:
+            delta = wheel.copy()
+            sigma = cfg.fallback_yaw_sigma_rad
+        else:
+            theta_v, sigma = result
+            # (2.4) wants the wheel translation with the wheel's full rotation applied;
+            # a wheel increment in the previous frame follows the midpoint convention
+            # (travel along θ_w/2), so rotate by the other θ_w/2 first.
+            half_w = wheel[2] / 2.0
+            c, s = math.cos(half_w), math.sin(half_w)
+            dp_end = np.array([c * wheel[0] - s * wheel[1], s * wheel[0] + c * wheel[1]])
+            dp = pt.localize(np.zeros(2), theta_v, float(wheel[2]), dp_end)
+            delta = np.array([dp[0], dp[1], theta_v])
+            sigma = max(sigma, cfg.yaw_sigma_floor_rad)
+        self._integrate(delta)
+        cpu = time.process_time() - t0
+        st = self.stats
+        st.frames += 1
+        st.cpu_time_total_s += cpu
+        st.cpu_time_last_s = cpu
+        if reason is not FallbackReason.NONE:
+            st.deferred += 1
+            st.by_reason[reason.value] = st.by_reason.get(reason.value, 0) + 1
+        return OdometryUpdate(
+            stamp_ns=int(frame.stamp_ns),
+            dx_m=float(delta[0]),
+            dy_m=float(delta[1]),
+            dyaw_rad=float(delta[2]),
+            yaw_sigma_rad=float(sigma),
+            fallback=reason,
+            pose=(float(self._pose[0]), float(self._pose[1]), float(self._pose[2])),
+            num_sampled=counts[0],
+            num_far=counts[1],
+            num_matched=counts[2],
+            num_inliers=counts[3],
+            cpu_time_s=cpu,
+        )
+
+    def reset(self, pose: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+        """Forget the previous frame and restart the integrated pose (counters are kept)."""
+        self._prev = None
+        self._pose = np.asarray(pose, dtype=float).copy()
+
+    # ------------------------------------------------------------------ steps
+
+    def _prepare(self, frame: StereoFrame) -> _Prepared:
+        intr = self.input_intrinsics
+        expected = (intr.height_px, intr.width_px)
+        images = []
+        for side, img in (("left", frame.left), ("right", frame.right)):
+            arr: NDArray[Any] = np.asarray(img)
+            if arr.shape[:2] != expected or arr.ndim not in (2, 3):
+                raise FrameError(
+                    f"{side} image has shape {arr.shape}, expected {expected} (grayscale) or "
+                    f"{expected + (3,)} (BGR) to match the camera intrinsics"
+                )
+            if arr.ndim == 3:
+                if arr.shape[2] != 3:
+                    raise FrameError(f"{side} image has {arr.shape[2]} channels, expected 1 or 3")
+                arr = cv2.cvtColor(arr, cv2.COLOR_BGR2GRAY)
+            if arr.dtype != np.uint8:
+                raise FrameError(f"{side} image has dtype {arr.dtype}, expected uint8")
+            w = self.work_intrinsics
+            if arr.shape != (w.height_px, w.width_px):
+                arr = cv2.resize(arr, (w.width_px, w.height_px), interpolation=cv2.INTER_AREA)
+            images.append(arr.astype(np.float32))
+        left, right = images
+        return _Prepared(left=left, right=right, spherical=self.spherical.remap(left))
+
+    def _sampling_columns(self, shift_cols: float) -> tuple[int, int]:
+        """Columns [lo, hi) of the previous spherical image to sample from (§2.3.2–2.3.3)."""
+        cols = self.spherical.shape[1]
+        hw = self.config.patch_width_px // 2
+        half = self.theta_max_rad / self.spherical.a_rad_per_px
+        centre = self.frontal_col
+        # Would the frontal region's patches scroll off the image under the wheels' turn?
+        # Then sample where the frontal region will be in the current frame instead.
+        if centre + half + shift_cols > cols - 1 - hw or centre - half + shift_cols < hw:
+            centre = self.frontal_col - shift_cols
+        lo = int(math.ceil(centre - half))
+        hi = int(math.floor(centre + half)) + 1
+        return max(lo, 0), min(hi, cols)
+
+    def _track(
+        self, prev: _Prepared, cur: _Prepared, theta_w_rad: float
+    ) -> tuple[tuple[float, float] | None, FallbackReason, tuple[int, int, int, int]]:
+        cfg = self.config
+        sph = self.spherical
+        a = sph.a_rad_per_px
+        hw, hh = cfg.patch_width_px // 2, cfg.patch_height_px // 2
+        shift_cols = theta_w_rad / a
+        lo, hi = self._sampling_columns(shift_cols)
+        # Corners in order of strength; candidates beyond the first N stand in for patches
+        # that the range test drops ("any feature closer than r_min is deemed unfit").
+        picks = pt.sample_patches(
+            prev.spherical,
+            lo,
+            hi,
+            cfg.candidate_factor * cfg.num_patches,
+            cfg.patch_width_px,
+            cfg.patch_height_px,
+            cfg.harris_min_response,
+        )
+        if len(picks) < cfg.min_patches:
+            return None, FallbackReason.BLANK_VIEW, (len(picks), 0, 0, 0)
+        # Range test (2.3): per-patch stereo in the previous frame's planar pair.
+        intr = self.work_intrinsics
+        far: list[tuple[int, int]] = []
+        n_sampled = 0
+        for r, c in picks:
+            if len(far) == cfg.num_patches:
+                break
+            n_sampled += 1
+            u, v = float(sph.map_u[r, c]), float(sph.map_v[r, c])
+            depth = pt.stereo_range_m(
+                prev.left,
+                prev.right,
+                u,
+                v,
+                intr.fx_px,
+                self.mounting.baseline_m,
+                cfg.stereo_max_disparity_px,
+                cfg.stereo_half_width_px,
+                cfg.stereo_half_height_px,
+                cfg.stereo_min_ncc,
+            )
+            ray_scale = math.sqrt(
+                1.0 + ((u - intr.cx_px) / intr.fx_px) ** 2 + ((v - intr.cy_px) / intr.fy_px) ** 2
+            )
+            theta = abs(float(sph.theta_of_column(c)))
+            r_min = (
+                self.r_min_m
+                if theta <= self.theta_max_rad
+                else pt.r_min_m(cfg.max_travel_m, theta, a)
+            )
+            if depth * ray_scale >= r_min:  # NaN (unreliable stereo) compares False: dropped
+                far.append((r, c))
+        n_far = len(far)
+        if n_far < cfg.min_patches:
+            return None, FallbackReason.NEAR_FEATURES, (n_sampled, n_far, 0, 0)
+        rows, cols = cur.spherical.shape
+        estimates: list[float] = []
+        sigmas: list[float] = []
+        for r, c in far:
+            tmpl = prev.spherical[r - hh : r + hh + 1, c - hw : c + hw + 1]
+            # Window spans the previous and the wheel-predicted position, plus half a patch
+            # on all sides (§2.3.3).
+            c0 = int(math.floor(min(c, c + shift_cols))) - hw - hw
+            c1 = int(math.ceil(max(c, c + shift_cols))) + hw + hw + 1
+            r0, r1 = r - hh - hh, r + hh + hh + 1
+            c0, c1, r0, r1 = max(c0, 0), min(c1, cols), max(r0, 0), min(r1, rows)
+            found = pt.ncc_search(tmpl, cur.spherical[r0:r1, c0:c1])
+            if found is None:
+                continue
+            _, col, peak, sigma_px = found
+            if peak < cfg.min_ncc or not math.isfinite(sigma_px):
+                continue
+            estimates.append((c0 + col + hw - c) * a)
+            sigmas.append(sigma_px * a)
+        n_matched = len(estimates)
+        if n_matched < cfg.min_patches:
+            return None, FallbackReason.POOR_MATCH, (n_sampled, n_far, n_matched, 0)
+        est = np.array(estimates)
+        sig = np.array(sigmas)
+        inliers = pt.vote(est, a)
+        n_in = int(inliers.sum())
+        if n_in == 0:
+            return None, FallbackReason.NO_CONSENSUS, (n_sampled, n_far, n_matched, 0)
+        # The inliers agree to within θ_p; weight them by their peak sharpness.
+        w = 1.0 / sig[inliers] ** 2
+        theta_v = float(np.sum(w * est[inliers]) / np.sum(w))
+        sigma = pt.merge_sigmas(sig[inliers], cfg.sigma_merge)
+        return (theta_v, sigma), FallbackReason.NONE, (n_sampled, n_far, n_matched, n_in)
+
+    def _integrate(self, delta: FloatArray) -> None:
+        x, y, yaw = self._pose
+        c, s = math.cos(yaw), math.sin(yaw)
+        new_yaw = (yaw + delta[2] + math.pi) % (2.0 * math.pi) - math.pi
+        self._pose = np.array(
+            [x + c * delta[0] - s * delta[1], y + s * delta[0] + c * delta[1], new_yaw]
+        )

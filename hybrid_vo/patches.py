@@ -1,0 +1,221 @@
+"""Per-patch steps of thesis §2.3: sampling, range test (2.3), NCC search, vote, σ, (2.4).
+
+Everything here is a pure function on numpy arrays; :mod:`hybrid_vo.odometer` strings them
+together. Spherical-image conventions are those of :mod:`hybrid_vo.camera` (θ grows to the
+right, one column = ``a`` radians).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+Float32Array = NDArray[np.float32]
+
+
+def r_min_m(d_m: float, theta_rad: float, theta_p_rad: float) -> float:
+    """Eq. (2.3): the nearest range at which forward travel ``d_m`` shifts bearing θ < θ_p/2.
+
+    ``r_min = d tan(θ_p/2 + θ) / (cos θ tan(θ_p/2 + θ) − sin θ)``. θ is taken in absolute
+    value (the geometry is symmetric); ``d_m`` is the largest travel between two frames.
+    """
+    theta = abs(theta_rad)
+    tan_t = math.tan(theta_p_rad / 2.0 + theta)
+    return d_m * tan_t / (math.cos(theta) * tan_t - math.sin(theta))
+
+
+def bearing_shift_rad(range_m: float, theta_rad: float, d_m: float) -> float:
+    """Change of bearing of a point at ``range_m`` and bearing θ after moving ``d_m`` forward.
+
+    The construction of Fig. 2.2, used to check (2.3): the point is at
+    ``(r cos θ, r sin θ)``; after moving forward it is at ``(r cos θ − d, r sin θ)``.
+    """
+    theta = abs(theta_rad)
+    return math.atan2(range_m * math.sin(theta), range_m * math.cos(theta) - d_m) - theta
+
+
+def sample_patches(
+    image: Float32Array,
+    col_lo: int,
+    col_hi: int,
+    num_patches: int,
+    patch_w: int,
+    patch_h: int,
+    min_response: float,
+) -> list[tuple[int, int]]:
+    """Patch centres ``(row, col)`` at the strongest Harris corners in columns [lo, hi).
+
+    The region is shrunk by half a patch on all sides so patches lie wholly inside it; after
+    each pick the corners under that patch are zeroed (the thesis's non-max suppression).
+    ``min_response`` is relative to the image's intensity variance, so a blank view yields
+    no patches at all.
+    """
+    rows, cols = image.shape
+    hw, hh = patch_w // 2, patch_h // 2
+    lo = max(col_lo, hw)
+    hi = min(col_hi, cols - hw)
+    if hi <= lo or rows < patch_h:
+        return []
+    # Harris on a margin-padded strip so the derivative kernels see real pixels.
+    a0 = max(0, lo - 3)
+    b0 = min(cols, hi + 3)
+    strip = np.ascontiguousarray(image[:, a0:b0])
+    resp = cv2.cornerHarris(strip, 3, 3, 0.04)
+    resp = resp[:, lo - a0 : hi - a0].copy()
+    resp[:hh, :] = 0.0
+    resp[rows - hh :, :] = 0.0
+    # Harris response scales with intensity^4; normalise so the threshold is contrast-free.
+    scale = float(np.var(strip)) ** 2 + 1e-6
+    picks: list[tuple[int, int]] = []
+    for _ in range(num_patches):
+        idx = int(np.argmax(resp))
+        r, c = divmod(idx, resp.shape[1])
+        if resp[r, c] / scale <= min_response:
+            break
+        picks.append((r, c + lo))
+        resp[max(0, r - hh) : r + hh + 1, max(0, c - hw) : c + hw + 1] = 0.0
+    return picks
+
+
+def parabola_offset(left: float, mid: float, right: float) -> float:
+    """Sub-pixel offset in [-0.5, 0.5] of the vertex of a parabola through three samples."""
+    denom = left - 2.0 * mid + right
+    if denom >= 0.0:
+        return 0.0
+    return float(np.clip(0.5 * (left - right) / denom, -0.5, 0.5))
+
+
+def peak_sigma_px(left: float, mid: float, right: float) -> float:
+    """σ (pixels) of a normal fitted to an NCC peak by matching second derivatives (§2.3.5).
+
+    For ``g = A exp(−x²/2σ²)``, ``g''(0) = −A/σ²``; with the numerical second derivative
+    ``c'' = left − 2·mid + right`` and ``A = mid``: ``σ = sqrt(−mid / c'')``. A flat or
+    inverted peak gives ``inf``.
+    """
+    curv = left - 2.0 * mid + right
+    if curv >= 0.0 or mid <= 0.0:
+        return math.inf
+    return math.sqrt(-mid / curv)
+
+
+def ncc_search(
+    template: Float32Array, window: Float32Array
+) -> tuple[float, float, float, float] | None:
+    """Best match of ``template`` in ``window`` by normalized cross-correlation.
+
+    Returns ``(row, col, peak_ncc, sigma_col_px)`` of the template's top-left corner in the
+    window with sub-pixel refinement along columns and rows, or None when the peak sits on
+    the window's left/right edge (the true match may lie outside) or the window is flat.
+    """
+    if window.shape[0] < template.shape[0] or window.shape[1] < template.shape[1]:
+        return None
+    res = cv2.matchTemplate(window, template, cv2.TM_CCOEFF_NORMED)
+    if not np.all(np.isfinite(res)):
+        res = np.nan_to_num(res, nan=-1.0, posinf=-1.0, neginf=-1.0)
+    r, c = divmod(int(np.argmax(res)), res.shape[1])
+    if res.shape[1] < 3 or c == 0 or c == res.shape[1] - 1:
+        return None
+    peak = float(res[r, c])
+    lft, rgt = float(res[r, c - 1]), float(res[r, c + 1])
+    dc = parabola_offset(lft, peak, rgt)
+    dr = 0.0
+    if 0 < r < res.shape[0] - 1:
+        dr = parabola_offset(float(res[r - 1, c]), peak, float(res[r + 1, c]))
+    return r + dr, c + dc, peak, peak_sigma_px(lft, peak, rgt)
+
+
+def stereo_range_m(
+    left: Float32Array,
+    right: Float32Array,
+    u_px: float,
+    v_px: float,
+    fx_px: float,
+    baseline_m: float,
+    max_disparity_px: int,
+    half_w: int,
+    half_h: int,
+    min_ncc: float,
+) -> float:
+    """Depth (m, along the optical axis) of the point at ``(u, v)`` from per-patch stereo.
+
+    Matches a ``(2·half_h+1) × (2·half_w+1)`` template around ``(u, v)`` in the left image
+    along the same row of the right image (rectified pair) for disparities
+    ``0..max_disparity_px`` (the approach of [1] the thesis cites for when no dense stereo is
+    at hand). Returns ``inf`` for zero disparity and NaN when the match is unreliable (low
+    NCC, template out of the image, peak at the largest disparity searched).
+    """
+    rows, cols = left.shape
+    ui, vi = int(round(u_px)), int(round(v_px))
+    if vi - half_h < 0 or vi + half_h >= rows or ui - half_w < 0 or ui + half_w >= cols:
+        return math.nan
+    tmpl = left[vi - half_h : vi + half_h + 1, ui - half_w : ui + half_w + 1]
+    lo = max(0, ui - half_w - max_disparity_px)
+    strip = right[vi - half_h : vi + half_h + 1, lo : ui + half_w + 1]
+    res = cv2.matchTemplate(strip, tmpl, cv2.TM_CCOEFF_NORMED)[0]
+    if not np.all(np.isfinite(res)):
+        return math.nan
+    c = int(np.argmax(res))
+    if res[c] < min_ncc:
+        return math.nan
+    disparity = float((ui - half_w) - (lo + c))
+    if lo > 0 and c == 0:
+        return math.nan  # nearer than the disparity range can see
+    if 0 < c < len(res) - 1:
+        disparity -= parabola_offset(float(res[c - 1]), float(res[c]), float(res[c + 1]))
+    if disparity <= 0.25:
+        return math.inf
+    return fx_px * baseline_m / disparity
+
+
+def vote(estimates_rad: FloatArray, theta_p_rad: float) -> NDArray[np.bool_]:
+    """Cross-validation vote (§2.3.4): the inlier mask of the patches' yaw estimates.
+
+    Each patch votes for every *other* patch whose estimate differs by less than θ_p; a
+    patch whose tally is more than half the number of patches is an inlier.
+    """
+    est = np.asarray(estimates_rad, dtype=float)
+    n = est.size
+    close = np.abs(est[:, None] - est[None, :]) < theta_p_rad
+    np.fill_diagonal(close, False)
+    tally = close.sum(axis=1)
+    result: NDArray[np.bool_] = tally > n / 2.0
+    return result
+
+
+def merge_sigmas(
+    sigmas_rad: FloatArray, rule: Literal["thesis", "inverse_variance"] = "thesis"
+) -> float:
+    """Merge per-patch yaw σ into the σ of the bearing estimate.
+
+    ``thesis``: ``σ_θ = (Σ σ_i⁻¹)⁻¹`` exactly as printed in §2.3.5 (for N equal σ it gives
+    σ/N). ``inverse_variance``: ``σ_θ = (Σ σ_i⁻²)^(−1/2)``, the usual combination of
+    independent estimates (σ/√N for N equal σ).
+    """
+    s = np.asarray(sigmas_rad, dtype=float)
+    if s.size == 0 or np.any(~(s > 0)):
+        raise ValueError(f"sigmas must be a non-empty array of positive values, got {s!r}")
+    if rule == "thesis":
+        return float(1.0 / np.sum(1.0 / s))
+    if rule == "inverse_variance":
+        return float(1.0 / math.sqrt(float(np.sum(1.0 / s**2))))
+    raise ValueError(f"unknown sigma merge rule {rule!r}; choose 'thesis' or 'inverse_variance'")
+
+
+def localize(
+    p_xy: FloatArray, theta_v_rad: float, theta_w_rad: float, dp_w_xy: FloatArray
+) -> FloatArray:
+    """Eq. (2.4): ``p' = p + R(θ_v/2) R(−θ_w) Δp_w`` (midpoint rule), all planar, ``(2,)``.
+
+    ``Δp_w`` is the wheel translation in the frame of ``p`` in which the wheel odometer's
+    rotation θ_w has been applied in full (its end-of-step heading); (2.4) undoes θ_w and
+    applies half the visual rotation θ_v instead.
+    """
+    a = theta_v_rad / 2.0 - theta_w_rad
+    c, s = math.cos(a), math.sin(a)
+    dp = np.asarray(dp_w_xy, dtype=float)
+    return np.asarray(p_xy, dtype=float) + np.array([c * dp[0] - s * dp[1], s * dp[0] + c * dp[1]])
