@@ -33,6 +33,7 @@ from types import ModuleType
 from typing import Any
 
 import numpy as np
+from results_md import replace_section
 
 from h2o_slam.errors import H2OError
 from h2o_slam.g2o import read_g2o
@@ -679,21 +680,8 @@ def render_section(results: list[GraphOnline], budgets_ms: list[float],
 
 
 def write_section(path: Path, section: str) -> None:
-    """Replace (or append) the ``## Online`` section of ``path``, keeping other sections."""
-    text = path.read_text() if path.exists() else "# Benchmark results\n"
-    lines = text.splitlines()
-    try:
-        start = lines.index(SECTION)
-    except ValueError:
-        new = text.rstrip("\n") + "\n\n" + section.rstrip("\n") + "\n"
-    else:
-        end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")),
-                   len(lines))
-        before, after = "\n".join(lines[:start]), "\n".join(lines[end:])
-        new = before.rstrip("\n") + "\n\n" + section.rstrip("\n") + "\n"
-        if after:
-            new += "\n" + after.rstrip("\n") + "\n"
-    path.write_text(new.lstrip("\n"))
+    """Replace (or append) this benchmark's section of ``path``, keeping the others."""
+    replace_section(path, SECTION, section)
 
 
 # --- entry point -------------------------------------------------------------------------------

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from results_md import replace_section
 
 from h2o_slam import geometry as geo
 from h2o_slam.errors import H2OError
@@ -410,21 +411,8 @@ def render_section(results: list[GraphResult], skipped: list[str]) -> str:
 
 
 def write_section(path: Path, section: str) -> None:
-    """Replace (or append) the ``## Solvers`` section of ``path``, keeping other sections."""
-    text = path.read_text() if path.exists() else "# Benchmark results\n"
-    lines = text.splitlines()
-    try:
-        start = lines.index(SECTION)
-    except ValueError:
-        new = text.rstrip("\n") + "\n\n" + section.rstrip("\n") + "\n"
-    else:
-        end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")),
-                   len(lines))
-        before, after = "\n".join(lines[:start]), "\n".join(lines[end:])
-        new = before.rstrip("\n") + "\n\n" + section.rstrip("\n") + "\n"
-        if after:
-            new += "\n" + after.rstrip("\n") + "\n"
-    path.write_text(new.lstrip("\n"))
+    """Replace (or append) this benchmark's section of ``path``, keeping the others."""
+    replace_section(path, SECTION, section)
 
 
 def run(data: Path, names: list[str] | None, timeout_s: float, out_dir: Path | None,
