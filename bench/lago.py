@@ -35,7 +35,6 @@ import datetime as dt
 import json
 import os
 import platform
-import shlex
 import statistics
 import subprocess
 import sys
@@ -48,7 +47,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from results_md import replace_section
+from results_md import command, replace_section, revision
 
 from h2o_slam import geometry as geo
 from h2o_slam import lago as lago_mod
@@ -387,27 +386,13 @@ def _machine() -> str:
                 break
     except OSError:
         pass
-    try:
-        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
-                             capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "h2o_slam"], cwd=REPO,
-                               capture_output=True, text=True, check=True).stdout.strip()
-        rev += " (h2o_slam/ with uncommitted changes)" if dirty else ""
-    except (OSError, subprocess.CalledProcessError):
-        rev = "unknown"
+    rev = revision(REPO)
     return (f"{cpu}, nproc {os.cpu_count()}, Python {platform.python_version()}, "
             f"{', '.join(versions)}, repo at {rev}")
 
 
 def _command() -> str:
-    exe, script = Path(sys.executable), Path(sys.argv[0]).resolve()
-    parts = []
-    for p in (exe, script):
-        try:
-            parts.append(str(p.relative_to(REPO)))
-        except ValueError:
-            parts.append(str(p))
-    return shlex.join([*parts, *sys.argv[1:]])
+    return command(REPO)
 
 
 def render_section(rows: list[Row], passes: int, repeats: int) -> str:

@@ -19,7 +19,6 @@ import json
 import multiprocessing as mp
 import os
 import platform
-import shlex
 import subprocess
 import sys
 import tempfile
@@ -30,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from results_md import replace_section
+from results_md import command, replace_section, revision
 
 from h2o_slam import geometry as geo
 from h2o_slam.errors import H2OError
@@ -373,31 +372,14 @@ def _machine() -> str:
         gtsam_version = metadata.version("gtsam")
     except metadata.PackageNotFoundError:
         gtsam_version = "not installed"
-    try:
-        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
-                             capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "h2o_slam"], cwd=REPO,
-                               capture_output=True, text=True, check=True).stdout.strip()
-        rev += " (h2o_slam/ with uncommitted changes)" if dirty else ""
-    except (OSError, subprocess.CalledProcessError):
-        rev = "unknown"
+    rev = revision(REPO)
     return (f"{platform.machine()}, nproc {os.cpu_count()}, Python "
             f"{platform.python_version()}, numpy {np.__version__}, gtsam {gtsam_version}, "
             f"repo at {rev}")
 
 
 def _command() -> str:
-    exe = Path(sys.executable)
-    try:
-        exe = exe.relative_to(REPO)
-    except ValueError:
-        pass
-    script = Path(sys.argv[0]).resolve()
-    try:
-        script = script.relative_to(REPO)
-    except ValueError:
-        pass
-    return shlex.join([str(exe), str(script), *sys.argv[1:]])
+    return command(REPO)
 
 
 def render_section(results: list[GraphResult], skipped: list[str]) -> str:
