@@ -10,6 +10,7 @@ the path without the root — the nodes whose local transforms change the edge's
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -32,7 +33,7 @@ class EdgePath:
     a_chain: np.ndarray
     b_chain: np.ndarray
 
-    @property
+    @cached_property
     def domain(self) -> np.ndarray:
         """The nodes whose local transforms change the edge's error: both chains."""
         return np.concatenate([self.a_chain, self.b_chain])
