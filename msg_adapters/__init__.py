@@ -17,6 +17,7 @@ from msg_adapters.camera_info import (
     CameraModel,
     camera_info_from_msg,
     check_stereo_pair,
+    fill_camera_info,
     stereo_baseline_m,
 )
 from msg_adapters.errors import AdapterError
@@ -25,6 +26,7 @@ from msg_adapters.gps import (
     GpsFix,
     datum_from_fix,
     ecef_to_geodetic,
+    fill_navsat_fix,
     geodetic_to_ecef,
     gps_fix_from_msg,
 )
@@ -90,11 +92,13 @@ __all__ = [
     "compressed_image_to_numpy",
     "datum_from_fix",
     "ecef_to_geodetic",
+    "fill_camera_info",
     "fill_diagnostic_array",
     "fill_graph_markers",
     "fill_header",
     "fill_image",
     "fill_loop_closure",
+    "fill_navsat_fix",
     "fill_odometry",
     "fill_path",
     "fill_pose",

@@ -7,9 +7,9 @@ from typing import Any
 
 import numpy as np
 
-from msg_adapters._util import Array, finite_array
+from msg_adapters._util import Array, finite_array, new_message, set_float_array
 from msg_adapters.errors import AdapterError
-from msg_adapters.stamps import stamp_ns
+from msg_adapters.stamps import fill_header, stamp_ns
 
 #: Number of distortion coefficients of each model this package knows.
 DISTORTION_MODELS = {"plumb_bob": 5, "rational_polynomial": 8, "equidistant": 4}
@@ -157,3 +157,21 @@ def check_stereo_pair(left: CameraModel, right: CameraModel) -> float:
     if not np.allclose(left.P[:, :3], right.P[:, :3], rtol=1e-6, atol=1e-9):
         raise AdapterError("stereo CameraInfo.p: left and right rectified intrinsics differ")
     return stereo_baseline_m(right)
+
+
+def fill_camera_info(msg_or_cls: Any, model: CameraModel) -> Any:
+    """Fill a ``sensor_msgs/CameraInfo`` (an instance, or a new one of the class given).
+
+    Raises:
+        AdapterError: what :func:`camera_info_from_msg` would reject in the result.
+    """
+    msg = new_message(msg_or_cls)
+    fill_header(msg.header, model.stamp_ns, model.frame_id)
+    msg.width, msg.height = int(model.width), int(model.height)
+    msg.distortion_model = str(model.distortion_model)
+    msg.d = [float(v) for v in finite_array(model.D, "CameraModel.D").ravel()]
+    for name, value, shape in (("k", model.K, (3, 3)), ("r", model.R, (3, 3)),
+                               ("p", model.P, (3, 4))):
+        set_float_array(msg, name, finite_array(value, f"CameraModel.{name.upper()}", shape))
+    camera_info_from_msg(msg)
+    return msg

@@ -21,9 +21,16 @@ from typing import Any
 
 import numpy as np
 
-from msg_adapters._util import Array, covariance, finite_array, finite_float
+from msg_adapters._util import (
+    Array,
+    covariance,
+    finite_array,
+    finite_float,
+    new_message,
+    set_float_array,
+)
 from msg_adapters.errors import AdapterError
-from msg_adapters.stamps import stamp_ns
+from msg_adapters.stamps import fill_header, stamp_ns
 
 WGS84_A = 6378137.0
 WGS84_F = 1.0 / 298.257223563
@@ -255,3 +262,39 @@ def gps_fix_from_msg(
         covariance=cov,
         status=status,
     )
+
+
+def fill_navsat_fix(
+    msg_or_cls: Any,
+    *,
+    stamp_ns: int,
+    frame_id: str,
+    lat_deg: float,
+    lon_deg: float,
+    alt_m: float,
+    covariance_enu: Any,
+    status: int = 0,
+    covariance_type: int = COVARIANCE_TYPE_KNOWN,
+) -> Any:
+    """Fill a ``sensor_msgs/NavSatFix`` (an instance, or a new one of the class given).
+
+    ``covariance_enu`` is ``(3, 3)`` in m², ENU at the fix, as the message carries it. A
+    ``NO_FIX`` message may carry NaN coordinates, as receivers publish them; any other
+    status needs finite ones.
+
+    Raises:
+        AdapterError: a fix status with NaN/inf coordinates, or a covariance that is not
+            symmetric positive semi-definite.
+    """
+    msg = new_message(msg_or_cls)
+    fill_header(msg.header, stamp_ns, frame_id)
+    msg.status.status = int(status)
+    msg.status.service = 1  # SERVICE_GPS
+    coords = (float(lat_deg), float(lon_deg), float(alt_m))
+    if int(status) != STATUS_NO_FIX:
+        finite_array(coords, "NavSatFix position", (3,))
+    msg.latitude, msg.longitude, msg.altitude = coords
+    cov = covariance(np.asarray(covariance_enu, dtype=float).ravel(), 3, "covariance_enu")
+    set_float_array(msg, "position_covariance", cov)
+    msg.position_covariance_type = int(covariance_type)
+    return msg
