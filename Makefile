@@ -27,17 +27,24 @@ help:
 	@echo "make demo   synthetic 400-pose graph -> h2o-solve (offline, 10 passes) -> report JSON"
 	@echo "make test   ruff, mypy and pytest (what CI runs)"
 	@echo "make bench  benchmarks against reference solvers (installs requirements-bench.txt)"
-	@echo "make venv   create/update .venv (reruns when a requirements file or setup.py changes)"
+	@echo "make venv   create/update .venv (reruns when a requirements file, setup.py or tools/tf2_msgs changes)"
 	@echo "make clean  remove build/, install/, log/ and out/"
 
 venv: $(DEV_STAMP)
 
-$(DEV_STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg
+# tf2_msgs (TFMessage for /tf) is not on PyPI: tools/build_tf2_msgs.sh generates and compiles
+# it from tools/tf2_msgs with the rosidl generators of the ROS wheels (a few seconds; no-op when
+# already built).
+TF2_MSGS_SRC := tools/build_tf2_msgs.sh tools/rosidl_generate.py tools/tf2_msgs/package.xml \
+  $(wildcard tools/tf2_msgs/msg/*.msg)
+
+$(DEV_STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg $(TF2_MSGS_SRC)
 	@if [ ! -x $(PY) ]; then \
 	  echo "creating $(VENV) with $(BOOTSTRAP_PYTHON)"; \
 	  $(BOOTSTRAP_PYTHON) -m venv $(VENV); \
 	fi
 	$(PY) -m pip install --quiet -r requirements-dev.txt
+	bash tools/build_tf2_msgs.sh $(VENV)
 	$(PY) -m pip install --quiet -e .
 	@touch $@
 
