@@ -22,9 +22,13 @@ ROS 2 Jazzy type store. rclpy is imported only by the writer, so reading needs n
 from __future__ import annotations
 
 import os
+import shutil
+import sqlite3
 import struct
+import tempfile
 from collections import Counter
 from collections.abc import Iterable, Iterator, Mapping, Sequence
+from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -213,7 +217,8 @@ class BagReader:
 
     Args:
         path: a rosbag2 directory, a ``.mcap``/``.db3`` file, or a ROS 1 ``.bag`` file.
-        topics: role → topic (:func:`topic_map`); ``None`` for the defaults.
+        topics: role → topic (:func:`topic_map`); roles not given keep their default
+            topic, a role given as ``None`` is off.
         required: roles without which the bag is refused; others may be missing.
 
     Raises:
@@ -231,9 +236,9 @@ class BagReader:
         self.path = Path(path)
         self.stats = BagStats(str(self.path))
         self._reader: AnyReader | None = None
-        self._salvage: _McapScan | None = None
+        self._salvage: _McapScan | _Sqlite3Scan | None = None
         self._open()
-        self._map_roles(dict(DEFAULT_TOPICS) if topics is None else dict(topics), required)
+        self._map_roles({**DEFAULT_TOPICS, **(topics or {})}, required)
 
     def __enter__(self) -> BagReader:
         return self
@@ -251,6 +256,8 @@ class BagReader:
         if self._reader is not None:
             reader, self._reader = self._reader, None
             reader.close()
+        if isinstance(self._salvage, _Sqlite3Scan):
+            self._salvage.close()
 
     @property
     def start_ns(self) -> int:
@@ -266,20 +273,35 @@ class BagReader:
         if not self.path.exists():
             raise ReplayError(self.path, "no such file or directory")
         try:
-            reader = AnyReader([self.path], default_typestore=jazzy_typestore())
-            reader.open()
+            self._reader = _any_reader(self.path)
         except Exception as exc:  # rosbags fails in many ways on damaged files
-            mcap = _mcap_file(self.path)
-            if mcap is None or not _footer_missing(mcap):
-                raise ReplayError(self.path, f"cannot open bag: {_reason(exc)}") from None
-            self._salvage = _McapScan(mcap)
-            self.stats.salvaged = f"{mcap.name} has no MCAP footer; reading record by record"
+            self._open_damaged(_reason(exc))
+        if self._reader is not None:
+            self.stats.topics = {
+                name: info.msgtype or "?" for name, info in sorted(self._reader.topics.items())
+            }
+        else:
+            assert self._salvage is not None
             self.stats.topics = self._salvage.topics()
-            return
-        self._reader = reader
-        self.stats.topics = {
-            name: info.msgtype or "?" for name, info in sorted(reader.topics.items())
-        }
+
+    def _open_damaged(self, reason: str) -> None:
+        """Fall back to the storage file alone: without ``metadata.yaml`` when that is what
+        failed, else record by record; raise the original reason if nothing works."""
+        data = _storage_file(self.path)
+        if data is None:
+            raise ReplayError(self.path, f"cannot open bag: {reason}")
+        if data != self.path:
+            try:
+                self._reader = _any_reader(data)
+                self.stats.salvaged = f"{reason}; read {data.name} without it"
+                return
+            except Exception:  # the storage itself is damaged: read it record by record
+                pass
+        try:
+            self._salvage = _McapScan(data) if data.suffix == ".mcap" else _Sqlite3Scan(data)
+        except Exception:  # not even the start of the file is readable
+            raise ReplayError(self.path, f"cannot open bag: {reason}") from None
+        self.stats.salvaged = f"{reason}; reading {data.name} record by record"
 
     def _map_roles(self, topics: dict[str, str | None], required: Sequence[str]) -> None:
         present = self.stats.topics
@@ -401,24 +423,21 @@ def _reason(exc: BaseException) -> str:
     return text if isinstance(exc, InputError) else f"{text} ({type(exc).__name__})"
 
 
-# --- MCAP files without a footer: read record by record --------------------------------
+# --- opening; damaged files read record by record --------------------------------------
 
 
-def _mcap_file(path: Path) -> Path | None:
-    if path.is_file() and path.suffix == ".mcap":
-        return path
-    if path.is_dir():
-        found = sorted(path.glob("*.mcap"))
-        return found[0] if len(found) == 1 else None
-    return None
+def _any_reader(path: Path) -> AnyReader:
+    reader = AnyReader([path], default_typestore=jazzy_typestore())
+    reader.open()
+    return reader
 
 
-def _footer_missing(path: Path) -> bool:
-    with path.open("rb") as f:
-        if f.read(8) != _MCAP_MAGIC:
-            return False
-        f.seek(-8, os.SEEK_END)
-        return f.read(8) != _MCAP_MAGIC
+def _storage_file(path: Path) -> Path | None:
+    """The one ``.mcap``/``.db3`` file of a bag (``path`` itself if it is one)."""
+    if path.is_file():
+        return path if path.suffix in (".mcap", ".db3") else None
+    found = sorted(p for p in path.glob("*") if p.suffix in (".mcap", ".db3"))
+    return found[0] if len(found) == 1 else None
 
 
 class _McapScan:
@@ -431,10 +450,14 @@ class _McapScan:
 
     def __init__(self, path: Path) -> None:
         self.path = path
+        with path.open("rb") as f:
+            if f.read(8) != _MCAP_MAGIC:
+                raise ReplayError(path, "not an MCAP file")
         self.schemas: dict[int, tuple[str, str, str]] = {}
         self.channels: dict[int, tuple[str, int]] = {}
         self.typestore = jazzy_typestore()
         self.damage: str | None = None
+        self.complete = False  # the footer was reached: only the index was unreadable
         for _ in self._records():  # first pass: schemas, channels and where damage starts
             pass
         self._register_schemas()
@@ -451,13 +474,15 @@ class _McapScan:
 
         Raises:
             ReplayError: at the damage (or the missing footer) after the last message.
+                A file that reads to its footer ends without error.
         """
         for channel_id, log_ns, data in self._records():
             topic, schema = self.channels[channel_id]
             if topic in topics:
                 type_name = self.schemas[schema][0]
                 yield topic, type_name, log_ns, self.typestore.deserialize_cdr(data, type_name)
-        raise ReplayError(self.path, self.damage or "ends without MCAP footer")
+        if not self.complete:
+            raise ReplayError(self.path, self.damage or "ends without MCAP footer")
 
     def _register_schemas(self) -> None:
         for name, encoding, text in self.schemas.values():
@@ -483,6 +508,7 @@ class _McapScan:
             opcode, length = struct.unpack("<BQ", head)
             body = f.read(length)
             if opcode == 0x02:  # footer: the file is whole after all
+                self.complete = True
                 return
             if opcode == 0x06:  # a chunk: its records; a cut one still gives its whole ones
                 yield from self._chunk(body)
@@ -536,6 +562,73 @@ def _string(body: bytes, pos: int) -> tuple[str, int]:
 
 def _idl_types(text: str, name: str) -> Any:
     return get_types_from_idl(text)
+
+
+class _Sqlite3Scan:
+    """Rows of a rosbag2 sqlite3 file read in insertion order, for damaged databases.
+
+    rosbags needs the whole ``messages`` table at open (it counts it); a cut database
+    still gives its first rows when walked by row id, which is the order rosbag2
+    inserted them in (arrival order). SQLite refuses a file shorter than its header says,
+    so a cut file is read from a copy padded with zeros (sparse) to that length.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.typestore = jazzy_typestore()
+        self._tmp: tempfile.TemporaryDirectory[str] | None = None
+        self._db_path = self._padded(path)
+        with closing(self._connect()) as db:
+            rows = db.execute("SELECT id, name, type FROM topics").fetchall()
+        self.channels = {int(i): (str(name), str(kind)) for i, name, kind in rows}
+
+    def _padded(self, path: Path) -> Path:
+        with path.open("rb") as f:
+            header = f.read(100)
+        if not header.startswith(b"SQLite format 3\x00"):
+            raise ReplayError(path, "not an SQLite database")
+        page_size = int.from_bytes(header[16:18], "big")
+        page_size = 65536 if page_size == 1 else page_size
+        size = page_size * int.from_bytes(header[28:32], "big")
+        if path.stat().st_size >= size:
+            return path
+        self._tmp = tempfile.TemporaryDirectory(prefix="h2o_replay_")
+        copy = Path(self._tmp.name) / path.name
+        shutil.copyfile(path, copy)
+        os.truncate(copy, size)
+        return copy
+
+    def _connect(self) -> sqlite3.Connection:
+        return sqlite3.connect(f"file:{self._db_path}?mode=ro&immutable=1", uri=True)
+
+    def close(self) -> None:
+        """Remove the padded copy, if one was made."""
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
+
+    def topics(self) -> dict[str, str]:
+        """Topic → type name of every topic in the ``topics`` table."""
+        return dict(sorted(self.channels.values()))
+
+    def messages(self, topics: set[str]) -> Iterator[_Raw]:
+        """``(topic, type, stamp ns, message)`` by row id, then the damage.
+
+        Raises:
+            ReplayError: where the database stops being readable.
+        """
+        ids = {i for i, (topic, _) in self.channels.items() if topic in topics}
+        db = self._connect()
+        try:
+            cursor = db.execute("SELECT topic_id, timestamp, data FROM messages ORDER BY id")
+            for topic_id, stamp_ns, data in cursor:
+                if topic_id in ids:
+                    topic, kind = self.channels[topic_id]
+                    yield topic, kind, int(stamp_ns), self.typestore.deserialize_cdr(data, kind)
+        except sqlite3.DatabaseError as exc:
+            raise ReplayError(self.path, f"database damaged: {exc}") from None
+        finally:
+            db.close()
 
 
 # --- writing ---------------------------------------------------------------------------
