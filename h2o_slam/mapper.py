@@ -32,6 +32,7 @@ import json
 import math
 import os
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -52,6 +53,9 @@ Array = np.ndarray
 CHI2_3DOF_999 = 16.266
 
 SIDECAR_VERSION = 1
+
+#: Most inputs held back waiting for odometry; beyond it the oldest is dropped.
+MAX_HELD = 1000
 
 
 @dataclass
@@ -213,6 +217,11 @@ class Mapper:
         self.datum: tuple[float, float, float] | None = None
         self.continue_from: int | None = None
         self.last_report = StepReport()
+        # Loop closures and fixes stamped after the newest odometry wait for it (messages
+        # on different topics arrive in any order): (stamp needed, retry).
+        self.held: list[tuple[int, Callable[[], object]]] = []
+        #: Reasons for held inputs that were refused when retried (for the node to log).
+        self.released_errors: list[str] = []
 
     # -- inputs -------------------------------------------------------------------------------
 
@@ -237,9 +246,33 @@ class Mapper:
             )
         self.track.append(stamp_ns, pose)
         self.accepted["odometry"] += 1
-        if self._wants_keyframe(stamp_ns, pose):
-            return self._add_keyframe(stamp_ns, pose)
-        return None
+        node = self._add_keyframe(stamp_ns, pose) if self._wants_keyframe(stamp_ns, pose) else None
+        self._release_held(stamp_ns)
+        return node
+
+    def _hold(self, needed_ns: int, retry: Callable[[], object]) -> bool:
+        """Hold an input until odometry reaches ``needed_ns``; returns whether it was held."""
+        if self.track.size and needed_ns <= self.track.latest()[0]:
+            return False
+        if len(self.held) >= MAX_HELD:
+            self.held.pop(0)
+            self.rejected["held_overflow"] += 1
+            self.released_errors.append(f"more than {MAX_HELD} inputs wait for odometry: "
+                                        "the oldest was dropped")
+        self.held.append((needed_ns, retry))
+        self.accepted["held"] += 1
+        return True
+
+    def _release_held(self, latest_ns: int) -> None:
+        ready = [item for item in self.held if item[0] <= latest_ns]
+        if not ready:
+            return
+        self.held = [item for item in self.held if item[0] > latest_ns]
+        for _, retry in ready:
+            try:
+                retry()
+            except InputError as exc:
+                self.released_errors.append(str(exc))
 
     def _wants_keyframe(self, stamp_ns: int, pose: Array) -> bool:
         if not self.keyframes.stamps or self.continue_from is not None:
@@ -279,15 +312,20 @@ class Mapper:
         return np.diag([sig_t**2, sig_t**2, sig_r**2])
 
     def add_loop_closure(self, from_ref: int | tuple[str, int], to_ref: int | tuple[str, int],
-                         delta: Array, cov3: Array) -> int:
+                         delta: Array, cov3: Array) -> int | None:
         """A relative pose ``delta = (dx, dy, dyaw)`` of *to* in *from*'s frame.
 
-        ``from_ref`` / ``to_ref`` are node ids (``int``) or ``("stamp", stamp_ns)``.
+        ``from_ref`` / ``to_ref`` are node ids (``int``) or ``("stamp", stamp_ns)``. A stamp
+        newer than the newest odometry is held until odometry reaches it (returns ``None``).
 
         Raises:
             InputError: an unknown node, a stamp with no keyframe near it, both ends on one
                 node, or a closure the χ² gate rejects.
         """
+        needed = max([r[1] for r in (from_ref, to_ref) if not isinstance(r, int)], default=0)
+        if needed and self._hold(needed, lambda: self.add_loop_closure(
+                from_ref, to_ref, delta, cov3)):
+            return None
         a, carry_a = self._resolve(from_ref)
         b, carry_b = self._resolve(to_ref)
         if a == b:
@@ -350,12 +388,15 @@ class Mapper:
                 f"{self.config.loop_gate_chi2:.1f} (error {err[0]:.2f} m, {err[1]:.2f} m, "
                 f"{err[2]:.3f} rad)")
 
-    def add_gps(self, stamp_ns: int, enu: Array, cov3: Array) -> int:
-        """A GPS fix (ENU metres, 3×3 covariance); returns the edge.
+    def add_gps(self, stamp_ns: int, enu: Array, cov3: Array) -> int | None:
+        """A GPS fix (ENU metres, 3×3 covariance); returns the edge (``None`` while the fix
+        waits for odometry to reach its stamp).
 
         Raises:
             InputError: no keyframe or odometry sample near the fix in time.
         """
+        if self._hold(stamp_ns, lambda: self.add_gps(stamp_ns, enu, cov3)):
+            return None
         node = self._gps_node(stamp_ns)
         R, _ = self.h2o.solver.world_pose(node)
         lever = np.array([*self.config.gps_lever_arm_m, 0.0])

@@ -165,7 +165,7 @@ def test_unknown_references_are_rejected() -> None:
     with pytest.raises(InputError, match="graph has"):
         mapper.add_loop_closure(0, 10_000, np.zeros(3), cov)
     with pytest.raises(InputError, match="nearest keyframe"):
-        mapper.add_loop_closure(0, ("stamp", START + 3600 * NS), np.zeros(3), cov)
+        mapper.add_loop_closure(0, ("stamp", START - 3600 * NS), np.zeros(3), cov)
     with pytest.raises(InputError, match="itself"):
         mapper.add_loop_closure(1, 1, np.zeros(3), cov)
     assert sum(mapper.rejected.values()) == 3
@@ -200,8 +200,27 @@ def test_gps_far_from_any_odometry_is_rejected() -> None:
     mapper = Mapper()
     feed(mapper, square_drive(laps=1)[:5])
     with pytest.raises(InputError, match="no odometry within"):
-        mapper.add_gps(START + 100 * NS, np.zeros(3), np.eye(3))
+        mapper.add_gps(START - 100 * NS, np.zeros(3), np.eye(3))
     assert mapper.rejected["gps_no_keyframe"] == 1
+
+
+def test_inputs_ahead_of_odometry_wait_for_it() -> None:
+    truth = square_drive(laps=1)
+    mapper = Mapper(MapperConfig(loop_gate_chi2=math.inf))
+    feed(mapper, truth[:100])
+    cov = np.eye(3) * 1e-4
+    # Both arrive before the odometry of their stamps: held, not refused.
+    assert mapper.add_loop_closure(stamp(10), stamp(120), relative(truth[10], truth[120]),
+                                   cov) is None
+    assert mapper.add_gps(START + 130 * NS // 10, np.array([*truth[130, :2], 0.0]),
+                          np.eye(3)) is None
+    assert len(mapper.held) == 2 and not mapper.rejected
+    edges = mapper.h2o.solver.num_edges
+    feed(mapper, truth, start=100)
+    assert not mapper.held and not mapper.released_errors
+    kinds = mapper.h2o.solver.kind[edges:]
+    assert mapper.accepted["loop_closure"] == 1 and mapper.accepted["gps"] == 1
+    assert {int(k) for k in kinds} == {0, 1}
 
 
 def test_save_load_continues_without_loss(tmp_path) -> None:
