@@ -1,0 +1,475 @@
+"""``h2o_node``: the H₂O back end as a ROS 2 node (a thin shell around :mod:`h2o_slam.mapper`).
+
+Subscribes to odometry (keyframes), loop closures (``nav_msgs/Odometry`` in the convention
+of :mod:`msg_adapters.loop_closure`) and ``sensor_msgs/NavSatFix``; runs one solver step
+per callback within ``budget_ms``; publishes the graph (PoseArray, Path, MarkerArray,
+reliable and transient-local), the latest optimized pose, ``map → odom`` (on ``/tf`` and
+as a TransformStamped topic) and ``/diagnostics``. The README lists every topic,
+parameter and service.
+
+For replay, every subscription callback is a public ``on_*`` method that takes rclpy or
+rosbags messages, and every publication goes through :meth:`H2ONode.emit`, which also
+hands the message to :attr:`H2ONode.sink` when one is set. Output stamps come from input
+stamps, never the wall clock.
+"""
+
+from __future__ import annotations
+
+import importlib
+import re
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseArray, PoseStamped, TransformStamped
+from nav_msgs.msg import Odometry
+from nav_msgs.msg import Path as PathMsg
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import NavSatFix
+from std_srvs.srv import SetBool, Trigger
+from visualization_msgs.msg import MarkerArray
+
+import msg_adapters as ma
+from h2o_slam import geometry as geo
+from h2o_slam.errors import H2OError, InputError
+from h2o_slam.graph import EdgeKind, edge_chi2
+from h2o_slam.mapper import Mapper, MapperConfig
+from h2o_slam.timing import CallbackTimes
+
+NODE_NAME = "h2o_node"
+
+#: Numbers in rejection reasons, replaced so that one reason is one diagnostics key.
+_NUMBER = re.compile(r"[-+]?\d[\d.]*(e[-+]?\d+)?")
+
+#: (name, default, description, (low, high) or None). Ranges bound what can be set.
+PARAMETERS: list[tuple[str, Any, str, tuple[float, float] | None]] = [
+    ("map_frame", "map", "Frame of the optimized graph (ENU when GPS is used).", None),
+    ("odom_frame", "odom", "Frame of the incoming odometry.", None),
+    ("base_frame", "base_link", "Robot body frame.", None),
+    ("publish_tf", True, "Publish map->odom on /tf.", None),
+    ("transform_publish_period", 0.05, "Seconds between map->odom publications.",
+     (0.001, 10.0)),
+    ("graph_publish_period", 1.0, "Seconds between graph publications.", (0.01, 60.0)),
+    ("diagnostics_period", 1.0, "Seconds between /diagnostics publications.", (0.05, 60.0)),
+    ("budget_ms", 5.0, "Solver time per callback in ms (run-time changeable).",
+     (0.1, 1000.0)),
+    ("d_max", 0, "Most nodes solved per edge; 0 lets the budget decide (run-time).",
+     (0, 1_000_000)),
+    ("keyframe_distance", 0.5, "New keyframe after this travel in m; 0 disables (run-time).",
+     (0.0, 100.0)),
+    ("keyframe_angle", 0.2, "New keyframe after this turn in rad; 0 disables (run-time).",
+     (0.0, 6.3)),
+    ("keyframe_period", 0.0, "New keyframe after this many s; 0 disables (run-time).",
+     (0.0, 3600.0)),
+    ("odom_sigma_per_m", 0.05, "Odometry translation sigma per metre travelled.", (0.0, 10.0)),
+    ("odom_yaw_sigma_per_rad", 0.05, "Odometry heading sigma per radian turned.", (0.0, 10.0)),
+    ("odom_yaw_sigma_per_m", 0.01, "Odometry heading sigma (rad) per metre travelled.",
+     (0.0, 10.0)),
+    ("loop_gate_chi2", 16.266,
+     "Largest accepted loop-closure chi2 (3 dof; 16.27 is the 99.9 % quantile).",
+     (0.1, 1e12)),
+    ("loop_stamp_tolerance", 0.5, "Seconds a loop-closure stamp may lie from a keyframe.",
+     (0.0, 60.0)),
+    ("loop_default_sigma_xy", 0.1, "Loop closure sigma (m) when its covariance is all zero.",
+     (1e-6, 100.0)),
+    ("loop_default_sigma_yaw", 0.02, "Loop closure sigma (rad) when its covariance is zero.",
+     (1e-6, 10.0)),
+    ("datum", [0.0], "GPS datum [lat_deg, lon_deg, alt_m]; [0.0] takes the first good fix.",
+     None),
+    ("zero_altitude", True, "Ignore GPS altitude.", None),
+    ("gps_sigma_floor", 0.05, "Smallest GPS sigma in m (a zero covariance never reaches "
+     "the solver).", (1e-4, 100.0)),
+    ("gps_max_sigma", 10.0, "Fixes with a larger horizontal sigma (m) are dropped.",
+     (1e-3, 1e4)),
+    ("gps_unknown_sigma", 5.0, "Sigma (m) for fixes whose covariance type is UNKNOWN.",
+     (1e-3, 1e4)),
+    ("gps_lever_arm", [0.0, 0.0], "Antenna position [x, y] in base_frame, m.", None),
+    ("gps_time_tolerance", 0.2, "Seconds a fix may lie from the keyframe it lands on.",
+     (0.0, 10.0)),
+    ("map_file", "", "g2o file for the save service and for load_map_on_start.", None),
+    ("load_map_on_start", False, "Continue the graph saved in map_file.", None),
+    ("input_queue_depth", 200, "Subscription queue depth of each input.", (1, 100_000)),
+]
+
+#: Parameters whose changes take effect while running (the rest need a restart).
+RUNTIME = {"budget_ms", "d_max", "keyframe_distance", "keyframe_angle", "keyframe_period",
+           "loop_gate_chi2", "publish_tf"}
+
+
+def _descriptor(name: str, default: Any, text: str,
+                bounds: tuple[float, float] | None) -> ParameterDescriptor:
+    desc = ParameterDescriptor(name=name, description=text,
+                               read_only=name not in RUNTIME and name != "publish_tf")
+    if bounds is not None and isinstance(default, bool):
+        return desc
+    if bounds is not None and isinstance(default, int):
+        desc.integer_range = [IntegerRange(from_value=int(bounds[0]), to_value=int(bounds[1]),
+                                           step=1)]
+    elif bounds is not None:
+        desc.floating_point_range = [FloatingPointRange(from_value=float(bounds[0]),
+                                                        to_value=float(bounds[1]))]
+    return desc
+
+
+def _load_tf_message() -> Any:
+    """``tf2_msgs/TFMessage``, or ``None`` where tf2_msgs is not installed."""
+    try:
+        return importlib.import_module("tf2_msgs.msg").TFMessage
+    except ImportError:
+        return None
+
+
+class H2ONode(Node):
+    """See the module docstring."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(NODE_NAME, **kwargs)
+        for name, default, text, bounds in PARAMETERS:
+            self.declare_parameter(name, default, _descriptor(name, default, text, bounds))
+        self.sink: Callable[[str, Any], None] | None = None
+        self.paused = False
+        self.times = CallbackTimes()
+        self.rejected: Counter[str] = Counter()
+        self._last_gps_ns: int | None = None
+        self._last_stamp_ns = 0
+        self._graph_dirty = True
+        self._tf_cls = _load_tf_message()
+        self.mapper = self._start_mapper()
+        self._datum = self._configured_datum()
+        self._make_interfaces()
+        self.add_on_set_parameters_callback(self._check_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+    # -- set-up -------------------------------------------------------------------------------
+
+    def p(self, name: str) -> Any:
+        """A parameter's value."""
+        return self.get_parameter(name).value
+
+    def mapper_config(self) -> MapperConfig:
+        """The mapper settings the parameters describe."""
+        d_max = int(self.p("d_max"))
+        lever = [float(v) for v in self.p("gps_lever_arm")]
+        if len(lever) != 2:
+            raise InputError(f"gps_lever_arm: expected [x, y], got {lever}")
+        return MapperConfig(
+            keyframe_distance_m=float(self.p("keyframe_distance")),
+            keyframe_angle_rad=float(self.p("keyframe_angle")),
+            keyframe_period_s=float(self.p("keyframe_period")),
+            odom_sigma_per_m=float(self.p("odom_sigma_per_m")),
+            odom_yaw_sigma_per_rad=float(self.p("odom_yaw_sigma_per_rad")),
+            odom_yaw_sigma_per_m=float(self.p("odom_yaw_sigma_per_m")),
+            loop_gate_chi2=float(self.p("loop_gate_chi2")),
+            loop_stamp_tolerance_s=float(self.p("loop_stamp_tolerance")),
+            gps_time_tolerance_s=float(self.p("gps_time_tolerance")),
+            gps_lever_arm_m=(lever[0], lever[1]),
+            budget_ms=float(self.p("budget_ms")),
+            d_max=d_max if d_max > 0 else None,
+        )
+
+    def _start_mapper(self) -> Mapper:
+        path = str(self.p("map_file"))
+        if self.p("load_map_on_start") and path and Path(path).exists():
+            mapper = Mapper.load(path, self.mapper_config())
+            self.get_logger().info(f"continuing the graph of {path}: {mapper.num_nodes} nodes")
+            return mapper
+        return Mapper(self.mapper_config())
+
+    def _configured_datum(self) -> ma.Datum | None:
+        values = [float(v) for v in self.p("datum")]
+        if self.mapper.datum is not None:
+            return ma.Datum(*self.mapper.datum)
+        if len(values) == 3:
+            return ma.Datum(*values)
+        if values not in ([], [0.0]):
+            raise InputError(f"datum: expected [lat_deg, lon_deg, alt_m] or [0.0], got {values}")
+        return None
+
+    def _make_interfaces(self) -> None:
+        depth = int(self.p("input_queue_depth"))
+        sensor = QoSProfile(depth=depth, reliability=ReliabilityPolicy.BEST_EFFORT)
+        reliable = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.create_subscription(Odometry, "odom", self.on_odom, sensor)
+        self.create_subscription(Odometry, "loop_closure", self.on_loop_closure, reliable)
+        self.create_subscription(NavSatFix, "gps/fix", self.on_gps, sensor)
+        self.publishers_by_key = {
+            "poses": self.create_publisher(PoseArray, "~/graph/poses", latched),
+            "path": self.create_publisher(PathMsg, "~/graph/path", latched),
+            "markers": self.create_publisher(MarkerArray, "~/graph/markers", latched),
+            "pose": self.create_publisher(PoseStamped, "~/pose", 10),
+            "map_to_odom": self.create_publisher(TransformStamped, "~/map_to_odom", 10),
+            "diagnostics": self.create_publisher(DiagnosticArray, "/diagnostics", 10),
+        }
+        if self._tf_cls is not None:
+            self.publishers_by_key["tf"] = self.create_publisher(self._tf_cls, "/tf", 100)
+        else:
+            self.get_logger().warning(
+                "tf2_msgs is not installed: map->odom goes to ~/map_to_odom only, not /tf")
+        self.create_service(Trigger, "~/save_map", self._srv_save)
+        self.create_service(Trigger, "~/exact_solve", self._srv_exact)
+        self.create_service(Trigger, "~/reset", self._srv_reset)
+        self.create_service(SetBool, "~/pause", self._srv_pause)
+        self.create_timer(float(self.p("graph_publish_period")), self.publish_graph)
+        self.create_timer(float(self.p("transform_publish_period")), self.publish_map_to_odom)
+        self.create_timer(float(self.p("diagnostics_period")), self.publish_diagnostics)
+
+    # -- parameters at run time -----------------------------------------------------------------
+
+    def _check_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        changed = {p.name: p.value for p in params}
+        frozen = sorted(set(changed) - RUNTIME)
+        if frozen:
+            return SetParametersResult(successful=False,
+                                       reason=f"{frozen} take effect only at start-up")
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, params: list[Parameter]) -> None:
+        config = self.mapper_config()
+        self.mapper.config = replace(self.mapper.config, **{
+            f.name: getattr(config, f.name) for f in fields(MapperConfig)})
+        self.get_logger().info(
+            "parameters changed: " + ", ".join(f"{p.name}={p.value}" for p in params))
+
+    # -- inputs -------------------------------------------------------------------------------
+
+    def _guarded(self, what: str, handler: Callable[[], None]) -> None:
+        """Run one input's handling, timing it; bad input is logged, counted and survived."""
+        start = time.perf_counter()
+        counted = sum(self.mapper.rejected.values())
+        try:
+            if not self.paused:
+                handler()
+        except (H2OError, ValueError, np.linalg.LinAlgError) as exc:
+            if sum(self.mapper.rejected.values()) == counted:  # the mapper counts its own
+                self.rejected[f"{what}: {_NUMBER.sub('#', str(exc))[:80]}"] += 1
+            self.get_logger().warning(f"{what} rejected: {exc}",
+                                      throttle_duration_sec=1.0)
+        for reason in self.mapper.released_errors:
+            self.get_logger().warning(f"held input rejected: {reason}",
+                                      throttle_duration_sec=1.0)
+        self.mapper.released_errors.clear()
+        elapsed_ms = 1e3 * (time.perf_counter() - start)
+        self.times.add(elapsed_ms, None if self.paused else float(self.p("budget_ms")))
+
+    def _step(self, start: float) -> None:
+        budget_s = 1e-3 * float(self.p("budget_ms")) - (time.perf_counter() - start)
+        self.mapper.step(max(budget_s, 0.0))
+        self._graph_dirty = True
+
+    def on_odom(self, msg: Any) -> None:
+        """An odometry message: maybe a keyframe, then one solver step."""
+        start = time.perf_counter()
+
+        def handle() -> None:
+            sample = ma.odometry_from_msg(msg)
+            x, y, yaw, _ = sample.planar()
+            node = self.mapper.add_odometry(sample.stamp_ns, np.array([x, y, yaw]))
+            self._last_stamp_ns = max(self._last_stamp_ns, sample.stamp_ns)
+            self._step(start)
+            if node is not None or self.mapper.num_nodes:
+                self.publish_pose()
+
+        self._guarded("odometry", handle)
+
+    def on_loop_closure(self, msg: Any) -> None:
+        """A loop closure: gated, then added and stepped."""
+        start = time.perf_counter()
+
+        def handle() -> None:
+            sx, syaw = float(self.p("loop_default_sigma_xy")), float(
+                self.p("loop_default_sigma_yaw"))
+            default = ma.planar_covariance(sx, sx, syaw, unobserved_variance=1.0)
+            closure = ma.loop_closure_from_msg(msg, default_covariance=default)
+            cov3 = closure.covariance[np.ix_(geo.PLANAR_DOF, geo.PLANAR_DOF)]
+            delta = np.array([closure.t[0], closure.t[1], float(geo.matrix_to_yaw(closure.R))])
+            self.mapper.add_loop_closure(_ref(closure.from_ref), _ref(closure.to_ref), delta,
+                                         cov3)
+            self._step(start)
+
+        self._guarded("loop_closure", handle)
+
+    def on_gps(self, msg: Any) -> None:
+        """A NavSatFix: dropped with the reason, or a position edge."""
+        start = time.perf_counter()
+
+        def handle() -> None:
+            stamp = ma.stamp_ns(msg.header, "NavSatFix.header.stamp")
+            ma.check_stamp_order(self._last_gps_ns, stamp, field="NavSatFix.header.stamp",
+                                 strict=True)
+            if self._datum is None:
+                self._datum = ma.datum_from_fix(msg)
+                self.mapper.datum = (self._datum.lat_deg, self._datum.lon_deg,
+                                     self._datum.alt_m)
+                self.get_logger().info(f"GPS datum set from the first good fix: {self._datum}")
+            fix = ma.gps_fix_from_msg(
+                msg, self._datum, unknown_sigma_m=float(self.p("gps_unknown_sigma")),
+                sigma_floor_m=float(self.p("gps_sigma_floor")),
+                max_sigma_m=float(self.p("gps_max_sigma")),
+                zero_altitude=bool(self.p("zero_altitude")))
+            self._last_gps_ns = stamp
+            self.mapper.add_gps(fix.stamp_ns, fix.enu, fix.covariance)
+            self._step(start)
+
+        self._guarded("gps", handle)
+
+    # -- outputs ------------------------------------------------------------------------------
+
+    def emit(self, key: str, msg: Any) -> None:
+        """Publish on the output ``key`` and hand the message to the sink, if any."""
+        publisher = self.publishers_by_key[key]
+        publisher.publish(msg)
+        if self.sink is not None:
+            self.sink(publisher.topic_name, msg)
+
+    def publish_pose(self) -> None:
+        """The newest odometry sample's pose in ``map``."""
+        latest = self.mapper.latest_pose()
+        if latest is None:
+            return
+        stamp, pose = latest
+        msg = PoseStamped()
+        ma.fill_header(msg.header, stamp, str(self.p("map_frame")))
+        ma.fill_pose(msg.pose, geo.yaw_to_matrix(pose[2]), np.array([pose[0], pose[1], 0.0]))
+        self.emit("pose", msg)
+
+    def publish_map_to_odom(self) -> None:
+        """``map → odom``, stamped with the newest input stamp."""
+        if not self.mapper.num_nodes:
+            return
+        x, y, yaw = self.mapper.map_to_odom()
+        msg = ma.fill_transform(TransformStamped, geo.yaw_to_matrix(yaw), np.array([x, y, 0.0]),
+                                stamp_ns=self._last_stamp_ns, frame_id=str(self.p("map_frame")),
+                                child_frame_id=str(self.p("odom_frame")))
+        self.emit("map_to_odom", msg)
+        if self._tf_cls is not None and self.p("publish_tf"):
+            self.emit("tf", ma.fill_tf_message(self._tf_cls, [msg]))
+
+    def publish_graph(self) -> None:
+        """PoseArray, Path and MarkerArray of the graph (on a timer: they cost ms per
+        thousand poses, which must not come out of the solver's budget)."""
+        if not self._graph_dirty or not self.mapper.num_nodes:
+            return
+        self._graph_dirty = False
+        graph = self.mapper.graph()
+        frame = str(self.p("map_frame"))
+        stamp = self._last_stamp_ns
+        self.emit("poses", ma.fill_pose_array(PoseArray, graph.R, graph.t, stamp_ns=stamp,
+                                              frame_id=frame))
+        self.emit("path", ma.fill_path(PathMsg, graph.R, graph.t, stamp_ns=stamp,
+                                       frame_id=frame, stamps_ns=self.mapper.keyframes.stamps))
+        chi2 = edge_chi2(graph)
+        rel = graph.kind == EdgeKind.RELATIVE
+        gps = graph.kind == EdgeKind.POSITION
+        markers = ma.GraphMarkers(
+            positions=graph.t, edges=np.column_stack([graph.a[rel], graph.b[rel]]),
+            edge_residuals=chi2[rel], gps_nodes=graph.b[gps],
+            gps_positions=graph.meas_t[gps], gps_residuals=chi2[gps])
+        self.emit("markers", ma.fill_graph_markers(MarkerArray, markers, stamp_ns=stamp,
+                                                   frame_id=frame, residual_scale=3.0))
+
+    def diagnostics(self) -> ma.DiagnosticReport:
+        """The node's status: callback times against the budget, graph size, χ², counts."""
+        budget = float(self.p("budget_ms"))
+        summary = self.times.summary()
+        graph = self.mapper.graph()
+        values: dict[str, object] = {
+            "budget_ms": budget, **summary,
+            "nodes": self.mapper.num_nodes, "edges": graph.num_edges,
+            "chi2": float(np.sum(edge_chi2(graph))) if graph.num_edges else 0.0,
+            "deferred_edges": self.mapper.last_report.deferred,
+            "paused": self.paused,
+            "tf_available": self._tf_cls is not None,
+            "gps_datum": "unset" if self._datum is None else
+            f"{self._datum.lat_deg:.8f}, {self._datum.lon_deg:.8f}",
+        }
+        values.update({f"accepted {k}": v for k, v in sorted(self.mapper.accepted.items())})
+        rejected = self.rejected + self.mapper.rejected
+        values.update({f"rejected {k}": v for k, v in sorted(rejected.items())})
+        values["rejected total"] = sum(rejected.values())
+        late = summary.get("p99_ms", 0.0) > budget
+        message = f"p99 {summary.get('p99_ms', 0.0):.2f} ms against a {budget:g} ms budget"
+        if self.paused:
+            message = "paused; " + message
+        return ma.DiagnosticReport(name=f"{self.get_name()}: solver", level=1 if late else 0,
+                                   message=message, values=values, hardware_id="h2o_slam")
+
+    def publish_diagnostics(self) -> None:
+        """``/diagnostics``."""
+        self.emit("diagnostics", ma.fill_diagnostic_array(
+            DiagnosticArray, [self.diagnostics()], stamp_ns=self._last_stamp_ns))
+
+    # -- services -----------------------------------------------------------------------------
+
+    def _srv_save(self, request: Any, response: Any) -> Any:
+        path = str(self.p("map_file"))
+        if not path:
+            response.success, response.message = False, "map_file is not set"
+            return response
+        try:
+            self.mapper.save(path)
+        except OSError as exc:
+            response.success, response.message = False, f"{path}: {exc}"
+            return response
+        response.success = True
+        response.message = f"saved {self.mapper.num_nodes} nodes to {path}"
+        return response
+
+    def _srv_exact(self, request: Any, response: Any) -> Any:
+        before, after = self.mapper.exact_solve()
+        self._graph_dirty = True
+        response.success, response.message = True, f"chi2 {before:.6g} -> {after:.6g}"
+        return response
+
+    def _srv_reset(self, request: Any, response: Any) -> Any:
+        self.mapper = Mapper(self.mapper_config())
+        self._datum = self._configured_datum()
+        self._last_gps_ns = None
+        self.rejected.clear()
+        self.times = CallbackTimes()
+        self._graph_dirty = True
+        response.success, response.message = True, "graph cleared"
+        return response
+
+    def _srv_pause(self, request: Any, response: Any) -> Any:
+        self.paused = bool(request.data)
+        response.success = True
+        response.message = "paused" if self.paused else "running"
+        return response
+
+
+def _ref(ref: ma.PoseRef) -> int | tuple[str, int]:
+    return ref.node_id if isinstance(ref, ma.NodeRef) else ("stamp", ref.stamp_ns)
+
+
+def main(args: list[str] | None = None) -> None:
+    """``ros2 run h2o_slam h2o_node``."""
+    rclpy.init(args=args)
+    node = H2ONode()
+    try:
+        rclpy.spin(node)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,276 @@
+"""h2o_node in-process: the synthetic world's streams go through real publishers into the
+node, one SingleThreadedExecutor spins both, and the tests assert on what it publishes."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseArray, PoseStamped, TransformStamped
+from nav_msgs.msg import Odometry
+from node_harness import LATCHED, Harness
+from rcl_interfaces.srv import SetParameters
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import NavSatFix
+from std_srvs.srv import SetBool, Trigger
+
+import msg_adapters as ma
+from h2o_slam.h2o_node import H2ONode
+from hybrid_vo import world
+from hybrid_vo.world_messages import StreamMessage, drive_messages
+
+ROLES = {"/wheel/odom": ("odom", Odometry), "/gps/fix": ("gps/fix", NavSatFix),
+         "/loop_closure": ("loop_closure", Odometry)}
+DATUM = [37.4275, -122.1697, 30.0]  # where hybrid_vo.world puts its ENU origin
+
+
+@pytest.fixture(scope="module")
+def slip_drive() -> world.Drive:
+    """Heavy wheel slip (hallucinated turns): what GPS must correct."""
+    return world.make_drive(world.scenario("slip", seed=2))
+
+
+@pytest.fixture(scope="module")
+def loop_drive() -> world.Drive:
+    """Two laps with ordinary wheel noise, and loop closures where the laps meet. (Under
+    the slip drive's hallucinated turns the gate rightly refuses closures: they are 0.7 rad
+    off what the odometry noise model allows.)"""
+    return world.make_drive(world.scenario("loop", seed=2))
+
+
+@pytest.fixture()
+def harness() -> Iterator[Harness]:
+    h = Harness()
+    yield h
+    h.close()
+
+
+def stream(drive: world.Drive, gps: bool, loops: bool) -> list[StreamMessage]:
+    keep = {"/wheel/odom"} | ({"/gps/fix"} if gps else set()) | (
+        {"/loop_closure"} if loops else set())
+    return [m for m in drive_messages(drive, with_images=False) if m.topic in keep]
+
+
+def start(h: Harness, **params: Any) -> tuple[H2ONode, dict[str, list[Any]]]:
+    overrides = [Parameter(k, value=v) for k, v in params.items()]
+    node = h.add(H2ONode, parameter_overrides=overrides)
+    outputs = {
+        "pose": h.subscribe(PoseStamped, "h2o_node/pose"),
+        "poses": h.subscribe(PoseArray, "h2o_node/graph/poses", LATCHED),
+        "diag": h.subscribe(DiagnosticArray, "/diagnostics"),
+        "m2o": h.subscribe(TransformStamped, "h2o_node/map_to_odom"),
+    }
+    for role, msg_type in ROLES.values():
+        h.wait_for_subscribers(msg_type, role)
+    return node, outputs
+
+
+def play(h: Harness, messages: list[StreamMessage], node: H2ONode | None = None) -> None:
+    """Publish in order; with ``node``, wait until it has taken each message, so that
+    the test does not depend on how DDS interleaves topics under load."""
+    for m in messages:
+        role, msg_type = ROLES[m.topic]
+        count = node.times.count if node is not None else 0
+        h.publish(msg_type, role, m.msg, spins=0)
+        if node is not None:
+            h.spin_until(lambda n=count: node.times.count > n, 10.0, f"{role} taken")
+    h.spin_for(0.3)
+
+
+def final_error(outputs: dict[str, list[Any]], drive: world.Drive) -> float:
+    last = outputs["pose"][-1]
+    p = last.pose.position
+    return float(math.hypot(p.x - drive.truth[-1, 0], p.y - drive.truth[-1, 1]))
+
+
+def wheel_error(drive: world.Drive) -> float:
+    return float(np.hypot(*(drive.wheel_poses()[-1, :2] - drive.truth[-1, :2])))
+
+
+def latest_diagnostics(h: Harness, outputs: dict[str, list[Any]], node: H2ONode) -> dict[str, str]:
+    count = len(outputs["diag"])
+    node.publish_diagnostics()
+    h.spin_until(lambda: len(outputs["diag"]) > count, 10.0, "diagnostics")
+    for msg in reversed(outputs["diag"]):
+        for status in msg.status:
+            if status.hardware_id == "h2o_slam" and node.get_name() in status.name:
+                return {kv.key: kv.value for kv in status.values}
+    raise AssertionError("no h2o_node diagnostics")
+
+
+def test_loop_closures_pull_the_graph_together(harness: Harness,
+                                               loop_drive: world.Drive) -> None:
+    node, out = start(harness, budget_ms=20.0)
+    messages = stream(loop_drive, gps=False, loops=True)
+    assert any(m.topic == "/loop_closure" for m in messages)
+    play(harness, messages, node)
+    diag = latest_diagnostics(harness, out, node)
+    assert int(diag["accepted loop_closure"]) >= 3
+    assert final_error(out, loop_drive) < 0.5 * wheel_error(loop_drive)
+    # The graph went out too, reliable and transient-local.
+    node.publish_graph()
+    harness.spin_until(
+        lambda: bool(out["poses"]) and len(out["poses"][-1].poses) == node.mapper.num_nodes,
+        5.0, "graph poses of every keyframe")
+
+
+def test_gps_anchors_the_graph_in_enu(harness: Harness, slip_drive: world.Drive) -> None:
+    node, out = start(harness, datum=DATUM, budget_ms=20.0)
+    play(harness, stream(slip_drive, gps=True, loops=False), node)
+    diag = latest_diagnostics(harness, out, node)
+    assert int(diag["accepted gps"]) > 40
+    # Dropouts (NO_FIX) are refused and counted, with the reason.
+    assert any("NO_FIX" in key for key in diag), diag
+    assert final_error(out, slip_drive) < 3.0 < wheel_error(slip_drive)
+    poses = node.mapper.poses()
+    stamps = np.asarray(node.mapper.keyframes.stamps) - slip_drive.stamps_ns[0]
+    idx = np.searchsorted(slip_drive.stamps_ns - slip_drive.stamps_ns[0], stamps - 1_000_000)
+    truth = slip_drive.truth[np.clip(idx, 0, len(slip_drive) - 1)]
+    assert np.median(np.hypot(*(poses[:, :2] - truth[:, :2]).T)) < 2.0
+
+
+def test_false_loop_closure_is_rejected_and_the_map_survives(
+        harness: Harness, loop_drive: world.Drive) -> None:
+    node, out = start(harness, budget_ms=20.0)
+    messages = stream(loop_drive, gps=False, loops=True)
+    play(harness, messages, node)
+    before = node.mapper.poses().copy()
+    closures_before = node.mapper.accepted["loop_closure"]
+    # Node 0 and the newest node 10 m apart and facing apart, claimed coincident.
+    newest = node.mapper.num_nodes - 1
+    lie = ma.make_loop_closure(ma.NodeRef(0), ma.NodeRef(newest), np.eye(3),
+                               np.array([25.0, -5.0, 0.0]),
+                               ma.planar_covariance(0.05, 0.05, 0.01, unobserved_variance=1.0))
+    harness.publish(Odometry, "loop_closure", ma.fill_loop_closure(Odometry, lie))
+    harness.spin_for(0.3)
+    diag = latest_diagnostics(harness, out, node)
+    assert int(diag["rejected loop_gated"]) == 1
+    assert node.mapper.accepted["loop_closure"] == closures_before
+    np.testing.assert_allclose(node.mapper.poses(), before, atol=0.05)
+
+
+def test_save_restart_restore_continues_without_loss(harness: Harness, tmp_path: Any,
+                                                     loop_drive: world.Drive) -> None:
+    path = str(tmp_path / "graph.g2o")
+    messages = stream(loop_drive, gps=False, loops=True)
+    half = len(messages) // 2
+    node, out = start(harness, map_file=path, budget_ms=20.0)
+    play(harness, messages[:half], node)
+    answer = harness.call(Trigger, "h2o_node/save_map", Trigger.Request())
+    assert answer.success, answer.message
+    saved = node.mapper.num_nodes
+    saved_edges = node.mapper.graph().num_edges
+    harness.remove(node)
+
+    node, out = start(harness, map_file=path, load_map_on_start=True, budget_ms=20.0)
+    assert node.mapper.num_nodes == saved
+    play(harness, messages[half:], node)
+    graph = node.mapper.graph()
+    assert node.mapper.num_nodes > saved
+    assert graph.num_edges > saved_edges
+    # The first new keyframe hangs off the last saved one: one connected chain.
+    assert {int(a) for a, b in zip(graph.a, graph.b, strict=True) if b == saved} == {saved - 1}
+    assert final_error(out, loop_drive) < 0.5 * wheel_error(loop_drive)
+
+
+def test_budget_changes_at_run_time(harness: Harness, slip_drive: world.Drive) -> None:
+    node, out = start(harness, budget_ms=5.0)
+    budgets: list[float | None] = []
+    step = node.mapper.step
+
+    def spy(budget_s: Any = "config") -> Any:
+        budgets.append(budget_s)
+        return step(budget_s)
+
+    node.mapper.step = spy  # type: ignore[method-assign]
+    messages = stream(slip_drive, gps=False, loops=False)
+    play(harness, messages[:50], node)
+    request = SetParameters.Request()
+    request.parameters = [Parameter("budget_ms", value=0.5).to_parameter_msg(),
+                          Parameter("keyframe_distance", value=2.0).to_parameter_msg()]
+    result = harness.call(SetParameters, "h2o_node/set_parameters", request)
+    assert all(r.successful for r in result.results)
+    first = len(budgets)
+    play(harness, messages[50:100], node)
+    assert max(b for b in budgets[:first] if b is not None) > 0.002
+    assert max(b for b in budgets[first:] if b is not None) <= 0.0005
+    assert node.mapper.config.keyframe_distance_m == 2.0
+    assert latest_diagnostics(harness, out, node)["budget_ms"] == "0.5"
+    # Start-up-only parameters are refused while running, with the reason.
+    request.parameters = [Parameter("map_frame", value="world").to_parameter_msg()]
+    result = harness.call(SetParameters, "h2o_node/set_parameters", request)
+    assert not result.results[0].successful
+    assert "start-up" in result.results[0].reason
+
+
+def _odometry(stamp_ns: int, x: float) -> Odometry:
+    sample = ma.planar_odometry_sample(stamp_ns, "odom", "base_link", x, 0.0, 0.0,
+                                       ma.planar_covariance(0.01, 0.01, 0.01))
+    return ma.fill_odometry(Odometry, sample)
+
+
+def _fix(stamp_ns: int, lat: float, status: int = 0) -> NavSatFix:
+    return ma.fill_navsat_fix(NavSatFix, stamp_ns=stamp_ns, frame_id="gps", lat_deg=lat,
+                              lon_deg=DATUM[1], alt_m=30.0, covariance_enu=np.eye(3),
+                              status=status)
+
+
+def test_bad_inputs_are_rejected_counted_and_survived(harness: Harness) -> None:
+    node, out = start(harness, datum=DATUM)
+    t0 = 1_700_000_000 * 10**9
+    for i in range(20):
+        harness.publish(Odometry, "odom", _odometry(t0 + i * 10**8, 0.1 * i))
+    harness.spin_for(0.2)
+    nodes, poses = node.mapper.num_nodes, node.mapper.poses().copy()
+    bad: list[tuple[str, Any, Any]] = []
+    nan_odom = _odometry(t0 + 30 * 10**8, 0.0)
+    nan_odom.pose.pose.position.x = math.nan
+    bad.append(("odom", Odometry, nan_odom))
+    zero_q = _odometry(t0 + 31 * 10**8, 0.0)
+    zero_q.pose.pose.orientation.w = 0.0
+    bad.append(("odom", Odometry, zero_q))
+    bad.append(("odom", Odometry, _odometry(t0, 5.0)))  # time going backwards
+    indefinite = ma.fill_loop_closure(Odometry, ma.make_loop_closure(
+        ma.NodeRef(0), ma.NodeRef(1), np.eye(3), np.zeros(3), np.eye(6)))
+    indefinite.pose.covariance[0] = -1.0
+    bad.append(("loop_closure", Odometry, indefinite))
+    bad.append(("loop_closure", Odometry, ma.fill_loop_closure(Odometry, ma.make_loop_closure(
+        ma.NodeRef(0), ma.NodeRef(999), np.eye(3), np.zeros(3), np.eye(6)))))
+    bad.append(("gps/fix", NavSatFix, _fix(t0 + 10**9, math.nan, status=-1)))
+    bad.append(("gps/fix", NavSatFix, _fix(t0 + 10**9, math.nan)))
+    bad.append(("gps/fix", NavSatFix, _fix(t0 + 10**9, 91.0)))
+    for role, msg_type, msg in bad:
+        harness.publish(msg_type, role, msg)
+    harness.spin_for(0.3)
+    diag = latest_diagnostics(harness, out, node)
+    assert int(diag["rejected total"]) == len(bad), diag
+    assert node.mapper.num_nodes == nodes
+    np.testing.assert_array_equal(node.mapper.poses(), poses)
+    # Still running: a good message after all that is taken.
+    for i in range(40, 60):
+        harness.publish(Odometry, "odom", _odometry(t0 + i * 10**8, 0.1 * i))
+    harness.spin_for(0.2)
+    assert node.mapper.num_nodes > nodes
+
+
+def test_pause_reset_and_exact_solve_services(harness: Harness,
+                                              loop_drive: world.Drive) -> None:
+    node, out = start(harness)
+    messages = stream(loop_drive, gps=False, loops=True)
+    play(harness, messages[:200], node)
+    answer = harness.call(SetBool, "h2o_node/pause", SetBool.Request(data=True))
+    assert answer.success and node.paused
+    nodes = node.mapper.num_nodes
+    play(harness, messages[200:300])
+    assert node.mapper.num_nodes == nodes
+    harness.call(SetBool, "h2o_node/pause", SetBool.Request(data=False))
+    answer = harness.call(Trigger, "h2o_node/exact_solve", Trigger.Request())
+    assert answer.success and "chi2" in answer.message
+    answer = harness.call(Trigger, "h2o_node/reset", Trigger.Request())
+    assert answer.success and node.mapper.num_nodes == 0
+    harness.spin_for(0.2)
+    assert out["m2o"], "map->odom was published on its timer"
