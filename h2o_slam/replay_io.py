@@ -32,7 +32,7 @@ from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import Any, BinaryIO, Literal
+from typing import Any, BinaryIO, Literal, Self
 
 import yaml
 from rosbags.highlevel import AnyReader
@@ -207,7 +207,26 @@ class BagStats:
     error: str | None = None
 
 
-class BagReader:
+class _ClosedOnExit:
+    """``with`` support: leaving the block calls ``close()``, also when an error ends it."""
+
+    def close(self) -> None:
+        """Release what the object holds."""
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+class BagReader(_ClosedOnExit):
     """A recording opened for replay; a context manager.
 
     Opening checks everything that can be checked before the first message: the file,
@@ -239,17 +258,6 @@ class BagReader:
         self._salvage: _McapScan | _Sqlite3Scan | None = None
         self._open()
         self._map_roles({**DEFAULT_TOPICS, **(topics or {})}, required)
-
-    def __enter__(self) -> BagReader:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     def close(self) -> None:
         """Release the files; safe to call twice."""
@@ -634,7 +642,7 @@ class _Sqlite3Scan:
 # --- writing ---------------------------------------------------------------------------
 
 
-class BagWriter:
+class BagWriter(_ClosedOnExit):
     """A rosbag2 bag written one rclpy message at a time; a context manager.
 
     Leaving the ``with`` block closes the bag properly even when an exception ends it,
@@ -666,17 +674,6 @@ class BagWriter:
         except Exception as exc:  # WriterError, OSError: one message naming the file
             raise ReplayError(self.path, f"cannot create bag: {_reason(exc)}") from None
         self._writer = writer
-
-    def __enter__(self) -> BagWriter:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     def write(self, topic: str, msg: Any, stamp_ns: int, type_name: str | None = None) -> None:
         """Append ``msg`` on ``topic`` at bag time ``stamp_ns`` (int ns).

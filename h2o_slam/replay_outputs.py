@@ -14,7 +14,8 @@ import math
 import os
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -239,13 +240,24 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
-def _pyplot() -> Any:
+@contextmanager
+def _figure(path: str | os.PathLike[str], size: tuple[float, float]) -> Iterator[Any]:
+    """Axes to draw on; saved as a PNG at ``path`` when the block ends without error."""
     import matplotlib
 
     matplotlib.use("Agg")  # files only: no display on a robot or in CI
     import matplotlib.pyplot as plt
 
-    return plt
+    fig, ax = plt.subplots(figsize=size)
+    try:
+        yield ax
+        ax.grid(True, alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:  # an empty plot has nothing to explain
+            ax.legend(fontsize=8, loc="best")
+        fig.tight_layout()
+        fig.savefig(Path(path), dpi=110, format="png")
+    finally:
+        plt.close(fig)  # pyplot keeps every open figure alive otherwise
 
 
 def plot_trajectories(
@@ -260,9 +272,7 @@ def plot_trajectories(
         trajectories: label → positions ``(N, 2+)`` m, in one world frame (ENU).
         gps_enu: ``(K, 2+)`` east/north of GPS fixes, drawn as points; ``None`` for none.
     """
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 6))
-    try:
+    with _figure(path, (7, 6)) as ax:
         if gps_enu is not None and len(gps_enu):
             gps = np.asarray(gps_enu, dtype=float)
             ax.plot(gps[:, 0], gps[:, 1], ".", color="grey", ms=4, label="GPS fixes")
@@ -271,11 +281,7 @@ def plot_trajectories(
             if len(xy):
                 ax.plot(xy[:, 0], xy[:, 1], "-", lw=1.2, label=label)
         ax.set(xlabel="east / x (m)", ylabel="north / y (m)", title=title, aspect="equal")
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=8, loc="best")
-        return _save(fig, path)
-    finally:
-        plt.close(fig)
+    return Path(path)
 
 
 def plot_callback_times(
@@ -290,46 +296,28 @@ def plot_callback_times(
         callback_ms: label (e.g. node) → ``(N,)`` callback durations in ms.
         budget_ms: the time budget; ``None`` draws no line.
     """
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    try:
+    with _figure(path, (8, 4.5)) as ax:
         for label, times in callback_ms.items():
             ms = np.asarray(times, dtype=float)
             ax.plot(np.arange(len(ms)), ms, ".", ms=2, label=f"{label} ({len(ms)} callbacks)")
         if budget_ms is not None:
             ax.axhline(budget_ms, color="red", ls="--", lw=1, label=f"budget {budget_ms:g} ms")
         ax.set(xlabel="callback", ylabel="time (ms)", title=title)
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=8, loc="best")
-        return _save(fig, path)
-    finally:
-        plt.close(fig)
+    return Path(path)
 
 
 def plot_chi2(
     path: str | os.PathLike[str], stamps_s: Any, chi2: Any, title: str = "χ² over time"
 ) -> Path:
     """Plot the graph's χ² against time (s since the start of the bag) into a PNG."""
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    try:
+    with _figure(path, (8, 4.5)) as ax:
         t = np.asarray(stamps_s, dtype=float)
         values = np.asarray(chi2, dtype=float)
         ax.plot(t, values, "-", lw=1.2)
         if len(values) and np.all(values[np.isfinite(values)] > 0):
             ax.set_yscale("log")
         ax.set(xlabel="bag time (s)", ylabel="χ²", title=title)
-        ax.grid(True, alpha=0.3)
-        return _save(fig, path)
-    finally:
-        plt.close(fig)
-
-
-def _save(fig: Any, path: str | os.PathLike[str]) -> Path:
-    out = Path(path)
-    fig.tight_layout()
-    fig.savefig(out, dpi=110, format="png")
-    return out
+    return Path(path)
 
 
 # --- progress --------------------------------------------------------------------------
