@@ -11,8 +11,10 @@ still delivered, so the node that receives it is the one that rejects and counts
 
 A damaged bag is read up to the damage: :meth:`BagReader.messages` yields every message
 it can, then raises :class:`ReplayError`, so the caller still writes out what it
-processed. An MCAP file without its footer (cut off, or a recording that never closed)
-is read record by record from its start for this, since its index is lost.
+processed. When ``rosbags`` cannot open a bag, the reader falls back to its storage file
+alone (an unusable ``metadata.yaml``), then to reading that file record by record: an MCAP
+file from its start (a cut file, or a recording that never closed, has lost its index),
+an sqlite3 database by row id (its insertion order). ``BagStats.salvaged`` says why.
 
 Writing serializes rclpy messages with ``rclpy.serialization`` into a rosbag2 bag, one
 message at a time (:class:`BagWriter`), registering each topic with its type from the
@@ -257,7 +259,11 @@ class BagReader(_ClosedOnExit):
         self._reader: AnyReader | None = None
         self._salvage: _McapScan | _Sqlite3Scan | None = None
         self._open()
-        self._map_roles({**DEFAULT_TOPICS, **(topics or {})}, required)
+        try:
+            self._map_roles({**DEFAULT_TOPICS, **(topics or {})}, required)
+        except ReplayError:
+            self.close()
+            raise
 
     def close(self) -> None:
         """Release the files; safe to call twice."""
@@ -388,8 +394,8 @@ class BagReader(_ClosedOnExit):
         if not connections:
             return
         for connection, stamp_ns, raw in reader.messages(connections=connections):
-            msg = reader.deserialize(raw, connection.msgtype)
-            yield connection.topic, connection.msgtype, stamp_ns, msg
+            topic, type_name = connection.topic, connection.msgtype
+            yield topic, type_name, stamp_ns, _decode(reader.deserialize, raw, topic, type_name)
 
 
 def read_bag(
@@ -417,6 +423,15 @@ def _missing(role: str, topic: str | None, present: Mapping[str, str]) -> str:
     if topic is None:
         return f"required role {role} has no topic mapped; topics in the bag: {have}"
     return f"no topic {topic} for {role} in the bag; topics in the bag: {have}"
+
+
+def _decode(deserialize: Any, data: bytes, topic: str, type_name: str) -> Any:
+    """``deserialize(data, type_name)``, failing with the topic and type named."""
+    try:
+        return deserialize(data, type_name)
+    except Exception as exc:  # rosbags' serde raises several kinds on bad bytes
+        raise InputError(f"a {type_name} message on {topic} does not deserialize: "
+                         f"{_reason(exc)}") from None
 
 
 def _header_ns(msg: Any) -> int | None:
@@ -488,7 +503,8 @@ class _McapScan:
             topic, schema = self.channels[channel_id]
             if topic in topics:
                 type_name = self.schemas[schema][0]
-                yield topic, type_name, log_ns, self.typestore.deserialize_cdr(data, type_name)
+                msg = _decode(self.typestore.deserialize_cdr, data, topic, type_name)
+                yield topic, type_name, log_ns, msg
         if not self.complete:
             raise ReplayError(self.path, self.damage or "ends without MCAP footer")
 
@@ -632,7 +648,8 @@ class _Sqlite3Scan:
             for topic_id, stamp_ns, data in cursor:
                 if topic_id in ids:
                     topic, kind = self.channels[topic_id]
-                    yield topic, kind, int(stamp_ns), self.typestore.deserialize_cdr(data, kind)
+                    msg = _decode(self.typestore.deserialize_cdr, data, topic, kind)
+                    yield topic, kind, int(stamp_ns), msg
         except sqlite3.DatabaseError as exc:
             raise ReplayError(self.path, f"database damaged: {exc}") from None
         finally:

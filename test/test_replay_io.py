@@ -301,6 +301,16 @@ def test_unknown_message_type_names_topic_and_type(tmp_path: Path) -> None:
         assert list(bag.messages()) == []
 
 
+def test_message_that_does_not_deserialize_names_topic_and_type(tmp_path: Path) -> None:
+    path = tmp_path / "garbled"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection("/wheel/odom", "nav_msgs/msg/Odometry", typestore=JAZZY)
+        writer.write(conn, 5, b"\x00\x01\x00\x00garbage")
+    with pytest.raises(ReplayError, match="garbled: stopped after 0 messages: a nav_msgs/msg/"
+                                          "Odometry message on /wheel/odom does not deserialize"):
+        list(read_bag(path, required=("wheel_odom",)))
+
+
 def test_header_stamps_going_backwards_are_counted_and_delivered(
     drive: Any, tmp_path: Path
 ) -> None:
