@@ -284,6 +284,11 @@ class H2OSolver:
             self._paths[edge] = cached
         return cached
 
+    def contribution_size(self, edge: int) -> int:
+        """Nodes the edge's current contribution to ``B`` covers (0: none yet)."""
+        old = self._contrib[edge]
+        return 0 if old is None else len(old[0])
+
     def root_depth(self, edge: int) -> int:
         """Depth of the edge's root (0 for the earth)."""
         root = self.path(edge).root

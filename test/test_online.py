@@ -251,3 +251,62 @@ def test_online_budget_through_solve_online():
     assert len(result.chi2_trace) >= graph.num_nodes // 20
     times = [s for s, _ in result.chi2_trace]
     assert times == sorted(times)
+
+
+def test_add_edge_only_queues_rebalancing_and_a_step_does_it():
+    graph = sphere_graph(rings=6, per_ring=12)
+    h2o = OnlineH2O(graph.planar)
+    moved_in_add = 0
+    for node, edges in enumerate(arrivals(graph)):
+        before = h2o.solver.tree.parent[: h2o.num_nodes].copy()
+        add_arrival(h2o, graph, node, edges)
+        # AddEdge runs outside any budget: it re-parents nothing that existed before.
+        moved_in_add += int(np.sum(h2o.solver.tree.parent[: len(before)] != before))
+        h2o.step(None)
+    assert moved_in_add == 0
+    depth = h2o.solver.tree.depth[: graph.num_nodes]
+    assert np.array_equal(depth, _bfs_depths(graph).astype(int))
+
+
+def test_rebalancing_that_does_not_fit_waits_and_then_completes():
+    graph = sphere_graph(rings=6, per_ring=12)
+    h2o = OnlineH2O(graph.planar, online=OnlineConfig(balance_max_subtree=None))
+    for node, edges in enumerate(arrivals(graph)):
+        add_arrival(h2o, graph, node, edges)
+    h2o._hang_cost_per_node = 1.0  # a second per node: nothing fits a millisecond
+    before = h2o.solver.tree.parent[: h2o.num_nodes].copy()
+    assert not h2o._rebalance(h2o._clock() + 1e-3)
+    assert np.array_equal(h2o.solver.tree.parent[: h2o.num_nodes], before)
+    assert h2o._hang_cost_per_node < 1.0  # refusals decay the estimate: no lock-up
+    assert h2o.balance()
+    depth = h2o.solver.tree.depth[: graph.num_nodes]
+    assert np.array_equal(depth, _bfs_depths(graph).astype(int))
+
+
+def test_lateness_tracking_holds_back_its_995th_percentile():
+    h2o = OnlineH2O(True, online=OnlineConfig(reserve=0.0))
+    rng = np.random.default_rng(3)
+    budget = 5e-3
+    late = rng.exponential(0.4e-3, 40000)
+    held = []
+    for x in late:
+        held.append(h2o._late_s)
+        h2o._track_lateness(x, budget)
+    held_late = np.array(held[20000:])
+    # A step overruns when it ends later than what was held back for it.
+    overrun = np.mean(late[20000:] > held_late)
+    assert 0.002 < overrun < 0.012
+    assert np.isclose(np.median(held_late), 0.4e-3 * np.log(200), rtol=0.15)
+
+
+@pytest.mark.parametrize("freeze", [True, False])
+def test_steps_keep_the_garbage_collector_off_the_live_graph(freeze):
+    import gc
+
+    gc.unfreeze()
+    graph = manhattan(30, seed=1).graph
+    _feed(graph, OnlineConfig(freeze_gc=freeze), budget_s=5e-3)
+    try:
+        assert (gc.get_freeze_count() > 0) == freeze
+    finally:
+        gc.unfreeze()
