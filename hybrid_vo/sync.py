@@ -165,14 +165,23 @@ class StarvationMonitor:
         self._window = rate_window
         self._stamps: dict[str, deque[int]] = {}
         self._once: dict[str, bool] = {}
+        self._partner: dict[str, str | None] = {}
         self._first_ns: int | None = None
         self._newest_ns: int | None = None
 
-    def watch(self, topic: str, *, once: bool = False) -> None:
-        """Watch ``topic``; with ``once`` it only starves until its first message (e.g. a
-        camera info that a driver publishes a single time)."""
+    def watch(self, topic: str, *, once: bool = False, partner: str | None = None) -> None:
+        """Watch ``topic``.
+
+        Args:
+            topic: the topic name, as the warning should show it.
+            once: it only starves until its first message (e.g. a camera info that a
+                driver publishes a single time).
+            partner: the topic to name as "still arriving" when it does (the other image
+                of a stereo pair); otherwise the fastest arriving topic is named.
+        """
         self._stamps.setdefault(topic, deque(maxlen=self._window))
         self._once[topic] = once
+        self._partner[topic] = partner
 
     def note(self, topic: str, stamp_ns: int) -> None:
         """Record a message on a watched topic (others are ignored)."""
@@ -213,8 +222,11 @@ class StarvationMonitor:
             others = sorted((t for t in alive if t != topic), key=self.rate_hz, reverse=True)
             if not others:
                 continue
+            named = self._partner[topic] if self._partner[topic] in others else others[0]
+            assert named is not None
             quiet_s = (now - last) / NS_PER_S
-            what = f"for {quiet_s:.1f} s" if stamps else f"yet ({quiet_s:.1f} s)"
-            rate = self.rate_hz(others[0])
-            messages.append(f"no {topic} {what} while {others[0]} arrives at {rate:.0f} Hz")
+            messages.append(
+                f"no {topic} for {quiet_s:.1f} s while {named} arrives at "
+                f"{self.rate_hz(named):.0f} Hz"
+            )
         return messages

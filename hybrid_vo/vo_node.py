@@ -252,19 +252,24 @@ class HybridVoNode(Node):
     def _subscribe(self, compressed: bool) -> None:
         image_type, suffix = (CompressedImage, "/compressed") if compressed else (Image, "")
         sensor = qos_profile_sensor_data
+        # The executor serves ready subscriptions in creation order: wheel odometry and
+        # camera info first, so that a frame finds what it needs when all arrive at once.
         specs = (
-            ("left_image", image_type, f"left/image_rect{suffix}", self.on_left_image, sensor),
-            ("right_image", image_type, f"right/image_rect{suffix}", self.on_right_image, sensor),
-            ("left_info", CameraInfo, "left/camera_info", self.on_left_info, sensor),
-            ("right_info", CameraInfo, "right/camera_info", self.on_right_info, sensor),
             # Wheel odometry drivers publish reliably; one lost sample would leave a gap.
             ("odom", Odometry, "odom", self.on_wheel_odom, QoSProfile(depth=100)),
+            ("left_info", CameraInfo, "left/camera_info", self.on_left_info, sensor),
+            ("right_info", CameraInfo, "right/camera_info", self.on_right_info, sensor),
+            ("left_image", image_type, f"left/image_rect{suffix}", self.on_left_image, sensor),
+            ("right_image", image_type, f"right/image_rect{suffix}", self.on_right_image, sensor),
         )
         self.input_topics: dict[str, str] = {}
         for key, msg_type, topic, callback, qos in specs:
             sub = self.create_subscription(msg_type, topic, callback, qos)
             self.input_topics[key] = sub.topic_name
-            self.monitor.watch(sub.topic_name, once=key.endswith("_info"))
+        partners = {"left_image": "right_image", "right_image": "left_image"}
+        for key, topic in self.input_topics.items():
+            partner = self.input_topics[partners[key]] if key in partners else None
+            self.monitor.watch(topic, once=key.endswith("_info"), partner=partner)
 
     def _advertise(self) -> None:
         p = self._p
@@ -433,6 +438,7 @@ class HybridVoNode(Node):
             return
         period_ns = int(self._p["diagnostics_period"] * NS_PER_S)
         if self._last_diag_ns is None or newest - self._last_diag_ns >= period_ns:
+            self._last_diag_ns = newest
             self.publish_diagnostics(newest)
 
     def _on_timer(self) -> None:
@@ -449,7 +455,7 @@ class HybridVoNode(Node):
         """Current warnings: starving inputs, unpaired stereo, no calibration, no TF."""
         found = self.monitor.starving()
         found += self._unpaired_stereo()
-        if self._newest_ns is not None and not self.frontend.calibrated:
+        if self.frontend.stats.fallbacks[NO_CALIBRATION] and not self.frontend.calibrated:
             found.append("no usable stereo calibration yet: using wheel odometry only")
         if self._p["publish_tf"] and self._tf_class is None:
             found.append("tf2_msgs not installed: /tf not published")
@@ -473,7 +479,6 @@ class HybridVoNode(Node):
 
     def publish_diagnostics(self, stamp_ns: int, extra: Sequence[str] = ()) -> None:
         """Emit one ``/diagnostics`` report stamped ``stamp_ns``; log current problems."""
-        self._last_diag_ns = stamp_ns
         problems = [*extra, *self.problems()]
         for text in problems:
             self._warn(text.split(" for ")[0], text)

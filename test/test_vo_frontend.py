@@ -377,17 +377,19 @@ def test_bad_sync_config_is_refused() -> None:
 
 def test_starvation_monitor_names_the_quiet_topic_and_the_one_that_arrives() -> None:
     mon = StarvationMonitor(timeout_s=2.0)
-    for topic in ("/left/image_rect", "/right/image_rect"):
-        mon.watch(topic)
+    mon.watch("/left/image_rect", partner="/right/image_rect")
+    mon.watch("/right/image_rect", partner="/left/image_rect")
     mon.watch("/left/camera_info", once=True)
+    mon.watch("/odom")
     for k in range(31):  # 3 s of left images at 10 Hz; right stops after 0.5 s
         mon.note("/left/image_rect", k * 100 * MS)
+        mon.note("/odom", k * 50 * MS + 10**8)  # arrives faster, but is not the partner
         if k <= 5:
             mon.note("/right/image_rect", k * 100 * MS)
     assert mon.rate_hz("/left/image_rect") == pytest.approx(10.0)
     assert mon.starving() == [
         "no /right/image_rect for 2.5 s while /left/image_rect arrives at 10 Hz",
-        "no /left/camera_info yet (3.0 s) while /left/image_rect arrives at 10 Hz",
+        "no /left/camera_info for 3.0 s while /odom arrives at 20 Hz",
     ]
     mon.note("/left/camera_info", 3000 * MS)  # once is enough for a camera info
     mon.note("/right/image_rect", 3000 * MS)
