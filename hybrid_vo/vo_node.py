@@ -80,13 +80,17 @@ class ParamSpec:
     high: float | None = None
 
 
-def _frontend_default(name: str) -> Any:
-    return getattr(FrontendConfig(), name)
+def _frontend(name: str, description: str, low: float, high: float) -> ParamSpec:
+    """A parameter of :class:`FrontendConfig`, its default taken from there."""
+    return ParamSpec(name, getattr(FrontendConfig(), name), description, low, high)
 
 
-def _odometer_default(name: str) -> Any:
+def _odometer(name: str, description: str, low: float | None = None,
+              high: float | None = None) -> ParamSpec:
+    """``odometer.<name>`` of :class:`OdometerConfig`, its default taken from there."""
     value = getattr(OdometerConfig(), name)
-    return 0.0 if value is None else value
+    return ParamSpec(f"odometer.{name}", 0.0 if value is None else value, description, low,
+                     high)
 
 
 #: Every parameter of the node, in the order of ``config/hybrid_vo.yaml``. Defaults come from
@@ -112,54 +116,40 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "frame period)", 0.0, 1.0),
     ParamSpec("sync_queue_size", SyncConfig().sync_queue_size,
               "unpaired images kept per side", 1, 100),
-    ParamSpec("camera_yaw", _frontend_default("camera_yaw"),
-              "left camera yaw on base_link, rad (positive: turned left)", -math.pi, math.pi),
-    ParamSpec("camera_pitch", _frontend_default("camera_pitch"),
-              "left camera pitch, rad (REP-103: positive tilts down)", -1.5, 1.5),
-    ParamSpec("camera_roll", _frontend_default("camera_roll"),
-              "left camera roll about its forward axis, rad", -1.5, 1.5),
-    ParamSpec("camera_height", _frontend_default("camera_height"),
-              "height of the left optical centre above the ground, m", 0.01, 100.0),
-    ParamSpec("camera_forward", _frontend_default("camera_forward"),
-              "left optical centre ahead of base_link, m", -100.0, 100.0),
-    ParamSpec("camera_left", _frontend_default("camera_left"),
-              "left optical centre left of base_link, m", -100.0, 100.0),
-    ParamSpec("wheel_buffer", _frontend_default("wheel_buffer"),
-              "seconds of wheel odometry kept for interpolation at frame stamps", 0.1, 600.0),
-    ParamSpec("max_pending_frames", _frontend_default("max_pending_frames"),
-              "stereo frames that may wait for wheel odometry to reach their stamp", 1, 1000),
-    ParamSpec("wheel_sigma_per_m", _frontend_default("wheel_sigma_per_m"),
-              "wheel translation noise, 1 sigma per metre travelled", 1e-6, 1.0),
-    ParamSpec("initial_sigma", _frontend_default("initial_sigma"),
-              "1 sigma of the first pose (m, rad)", 1e-9, 10.0),
-    ParamSpec("odometer.work_width_px", _odometer_default("work_width_px"),
-              "images are downsampled to this width (height keeps the aspect ratio); "
-              "thesis: 160", 32, 4096),
-    ParamSpec("odometer.num_patches", _odometer_default("num_patches"),
-              "patches tracked per frame (thesis: 6)", 1, 64),
-    ParamSpec("odometer.patch_width_px", _odometer_default("patch_width_px"),
-              "patch width in spherical pixels, odd (thesis: 13)", 3, 63),
-    ParamSpec("odometer.patch_height_px", _odometer_default("patch_height_px"),
-              "patch height in spherical pixels, odd (thesis: 3)", 3, 63),
-    ParamSpec("odometer.min_patches", _odometer_default("min_patches"),
-              "fewer usable patches -> the frame uses wheel odometry", 1, 64),
-    ParamSpec("odometer.band_half_height_rad", _odometer_default("band_half_height_rad"),
-              "the horizon band covers this pitch above and below the horizon, rad",
-              0.01, 0.8),
-    ParamSpec("odometer.theta_max_rad", _odometer_default("theta_max_rad"),
-              "half-width of the patch sampling region, rad; 0: from the mounting", 0.0, 1.5),
-    ParamSpec("odometer.max_speed_m_s", _odometer_default("max_speed_m_s"),
-              "largest robot speed, m/s (with frame_rate_hz: the r_min range test)",
-              0.01, 50.0),
-    ParamSpec("odometer.frame_rate_hz", _odometer_default("frame_rate_hz"),
-              "camera frame rate, Hz", 0.1, 200.0),
-    ParamSpec("odometer.min_ncc", _odometer_default("min_ncc"),
-              "a patch match below this normalized cross-correlation is discarded",
-              -0.99, 0.99),
-    ParamSpec("odometer.fallback_yaw_sigma_rad", _odometer_default("fallback_yaw_sigma_rad"),
-              "yaw sigma of a frame that uses wheel odometry, rad", 1e-6, 1.0),
-    ParamSpec("odometer.sigma_merge", _odometer_default("sigma_merge"),
-              "how patch yaw sigmas combine: thesis or inverse_variance"),
+    _frontend("camera_yaw", "left camera yaw on base_link, rad (positive: turned left)",
+              -math.pi, math.pi),
+    _frontend("camera_pitch", "left camera pitch, rad (REP-103: positive tilts down)",
+              -1.5, 1.5),
+    _frontend("camera_roll", "left camera roll about its forward axis, rad", -1.5, 1.5),
+    _frontend("camera_height", "height of the left optical centre above the ground, m",
+              0.01, 100.0),
+    _frontend("camera_forward", "left optical centre ahead of base_link, m", -100.0, 100.0),
+    _frontend("camera_left", "left optical centre left of base_link, m", -100.0, 100.0),
+    _frontend("wheel_buffer", "seconds of wheel odometry kept for interpolation at frame "
+              "stamps", 0.1, 600.0),
+    _frontend("max_pending_frames", "stereo frames that may wait for wheel odometry to reach "
+              "their stamp", 1, 1000),
+    _frontend("wheel_sigma_per_m", "wheel translation noise, 1 sigma per metre travelled",
+              1e-6, 1.0),
+    _frontend("initial_sigma", "1 sigma of the first pose (m, rad)", 1e-9, 10.0),
+    _odometer("work_width_px", "images are downsampled to this width (height keeps the "
+              "aspect ratio); thesis: 160", 32, 4096),
+    _odometer("num_patches", "patches tracked per frame (thesis: 6)", 1, 64),
+    _odometer("patch_width_px", "patch width in spherical pixels, odd (thesis: 13)", 3, 63),
+    _odometer("patch_height_px", "patch height in spherical pixels, odd (thesis: 3)", 3, 63),
+    _odometer("min_patches", "fewer usable patches -> the frame uses wheel odometry", 1, 64),
+    _odometer("band_half_height_rad", "the horizon band covers this pitch above and below "
+              "the horizon, rad", 0.01, 0.8),
+    _odometer("theta_max_rad", "half-width of the patch sampling region, rad; 0: from the "
+              "mounting", 0.0, 1.5),
+    _odometer("max_speed_m_s", "largest robot speed, m/s (with frame_rate_hz: the r_min "
+              "range test)", 0.01, 50.0),
+    _odometer("frame_rate_hz", "camera frame rate, Hz", 0.1, 200.0),
+    _odometer("min_ncc", "a patch match below this normalized cross-correlation is "
+              "discarded", -0.99, 0.99),
+    _odometer("fallback_yaw_sigma_rad", "yaw sigma of a frame that uses wheel odometry, rad",
+              1e-6, 1.0),
+    _odometer("sigma_merge", "how patch yaw sigmas combine: thesis or inverse_variance"),
 )
 
 
