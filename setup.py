@@ -28,6 +28,8 @@ setup(
     entry_points={
         "console_scripts": [
             "h2o-solve = h2o_slam.cli.solve:main",
+            "h2o_node = h2o_slam.h2o_node:main",
+            "hybrid_vo_node = hybrid_vo.vo_node:main",
         ],
     },
 )

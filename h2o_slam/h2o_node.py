@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import importlib
 import re
+import sys
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -36,6 +37,7 @@ from rcl_interfaces.msg import (
     ParameterDescriptor,
     SetParametersResult,
 )
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -457,19 +459,26 @@ def _ref(ref: ma.PoseRef) -> int | tuple[str, int]:
     return ref.node_id if isinstance(ref, ma.NodeRef) else ("stamp", ref.stamp_ns)
 
 
-def main(args: list[str] | None = None) -> None:
-    """``ros2 run h2o_slam h2o_node``."""
+def main(args: list[str] | None = None) -> int:
+    """``ros2 run h2o_slam h2o_node``; a bad parameter or map file ends it with one line and
+    exit code 1."""
     rclpy.init(args=args)
-    node = H2ONode()
     try:
-        rclpy.spin(node)
-    except KeyboardInterrupt:
-        pass
+        try:
+            node = H2ONode()
+        except (H2OError, ValueError, OSError) as exc:
+            print(f"h2o_node: {exc}", file=sys.stderr)
+            return 1
+        try:
+            rclpy.spin(node)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass  # Ctrl-C or SIGTERM: a normal stop
+        finally:
+            node.destroy_node()
     finally:
-        node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -19,6 +20,7 @@ from sensor_msgs.msg import NavSatFix
 from std_srvs.srv import SetBool, Trigger
 
 import msg_adapters as ma
+from h2o_slam.errors import InputError
 from h2o_slam.h2o_node import H2ONode
 from hybrid_vo import world
 from hybrid_vo.world_messages import DEFAULT_START_NS, StreamMessage, drive_messages
@@ -275,3 +277,23 @@ def test_pause_reset_and_exact_solve_services(harness: Harness,
     assert answer.success and node.mapper.num_nodes == 0
     harness.spin_for(0.2)
     assert out["m2o"], "map->odom was published on its timer"
+
+
+def test_config_file_lists_every_parameter_with_its_default() -> None:
+    import yaml
+
+    from h2o_slam.h2o_node import PARAMETERS
+
+    path = Path(__file__).resolve().parents[1] / "config" / "h2o.yaml"
+    text = path.read_text()
+    values = yaml.safe_load(text)["h2o_node"]["ros__parameters"]
+    assert set(values) == {name for name, *_ in PARAMETERS}
+    for name, default, _, bounds in PARAMETERS:
+        assert values[name] == default, name
+        if bounds is not None and not isinstance(default, bool):
+            assert f"[{bounds[0]:g}, {bounds[1]:g}]" in text, name
+
+
+def test_bad_parameters_end_the_node_with_one_line(harness: Harness) -> None:
+    with pytest.raises(InputError, match="datum"):
+        harness.add(H2ONode, parameter_overrides=[Parameter("datum", value=[1.0, 2.0])])

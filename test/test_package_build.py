@@ -21,6 +21,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = "h2o_slam"
 EXECUTABLES = ["h2o-solve"]
+NODES = ["h2o_node", "hybrid_vo_node"]
 BUILD_TIMEOUT_S = 300
 RUN_TIMEOUT_S = 60
 
@@ -140,8 +141,9 @@ def test_install_space_layout(colcon_build: ColconBuild) -> None:
     prefix = colcon_build.prefix
     assert (prefix / "share/ament_index/resource_index/packages" / PACKAGE).is_file()
     assert (prefix / "share" / PACKAGE / "package.xml").is_file()
-    assert (prefix / "share" / PACKAGE / "config/fastdds_localhost.xml").is_file()
-    for name in EXECUTABLES:
+    for config in ("fastdds_localhost.xml", "h2o.yaml", "hybrid_vo.yaml"):
+        assert (prefix / "share" / PACKAGE / "config" / config).is_file(), config
+    for name in EXECUTABLES + NODES:
         exe = prefix / "lib" / PACKAGE / name
         assert exe.is_file() and os.access(exe, os.X_OK), exe
 
@@ -181,3 +183,52 @@ def test_ros2_run_finds_and_runs_executable(
     assert proc.returncode == 0, f"stdout:\n{proc.stdout}\nstderr:\n{proc.stderr}"
     assert proc.stdout.lstrip().startswith("usage:"), proc.stdout
     assert executable in proc.stdout
+
+
+def test_installed_h2o_node_answers_over_loopback_dds(
+    colcon_build: ColconBuild, sourced_env: dict[str, str], monkeypatch: pytest.MonkeyPatch,
+    tmp_path: Path,
+) -> None:
+    """The installed h2o_node, resolved as ``ros2 run`` does and started with the installed
+    config/h2o.yaml, takes odometry over DDS and answers on its topics and services."""
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Odometry
+    from node_harness import Harness
+    from std_srvs.srv import Trigger
+
+    import msg_adapters as ma
+
+    monkeypatch.setenv("AMENT_PREFIX_PATH", sourced_env["AMENT_PREFIX_PATH"])
+    exe = _ros2_run_lookup(PACKAGE, "h2o_node")
+    params = colcon_build.prefix / "share" / PACKAGE / "config" / "h2o.yaml"
+    harness = Harness()
+    map_file = tmp_path / "graph.g2o"
+    env = dict(sourced_env)
+    env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(REPO / "config" / "fastdds_localhost.xml")
+    env["RMW_IMPLEMENTATION"] = "rmw_fastrtps_cpp"
+    proc = subprocess.Popen(
+        [str(exe), "--ros-args", "--params-file", str(params), "-r",
+         f"__ns:={harness.namespace}", "-p", f"map_file:={map_file}"],
+        env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        poses = harness.subscribe(PoseStamped, "h2o_node/pose")
+        harness.wait_for_subscribers(Odometry, "odom", timeout_s=RUN_TIMEOUT_S)
+        t0 = 1_700_000_000 * 10**9
+        for i in range(40):
+            sample = ma.planar_odometry_sample(t0 + i * 10**8, "odom", "base_link", 0.1 * i,
+                                               0.0, 0.0, ma.planar_covariance(0.01, 0.01, 0.01))
+            harness.publish(Odometry, "odom", ma.fill_odometry(Odometry, sample))
+            harness.spin_for(0.02)
+        harness.spin_until(lambda: len(poses) >= 30, RUN_TIMEOUT_S, "poses from h2o_node")
+        assert poses[-1].header.frame_id == "map"
+        assert poses[-1].pose.position.x == pytest.approx(3.9, abs=1e-6)
+        answer = harness.call(Trigger, "h2o_node/save_map", Trigger.Request())
+        assert answer.success, answer.message
+        assert map_file.is_file() and map_file.with_suffix(".json").is_file()
+    finally:
+        proc.terminate()
+        try:
+            output = proc.communicate(timeout=RUN_TIMEOUT_S)[0]
+        finally:
+            harness.close()
+    assert proc.returncode in (0, -15), output
