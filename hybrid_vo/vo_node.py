@@ -34,11 +34,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TransformStamped
 from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import (  # type: ignore[import-untyped]  # no stubs; not in pyproject overrides
-    FloatingPointRange,
-    IntegerRange,
-    ParameterDescriptor,
-)
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -222,6 +218,7 @@ class HybridVoNode(Node):
         self._newest_ns: int | None = None
         self._last_diag_ns: int | None = None
         self._inputs_since_tick = 0
+        self._silent_ticks = 0
         self._warned: dict[str, float] = {}
         self.tf_skipped = 0
         self._subscribe(bool(p["use_compressed"]))
@@ -433,12 +430,16 @@ class HybridVoNode(Node):
 
     def _on_timer(self) -> None:
         # Message time stands still when no input arrives; report that on the node clock.
-        if self._inputs_since_tick == 0:
+        if self._inputs_since_tick:
+            self._silent_ticks = 0
+        else:
+            self._silent_ticks += 1
             stamp = self._newest_ns
             if stamp is None:
                 stamp = self.get_clock().now().nanoseconds
-            period = self._p["diagnostics_period"]
-            self.publish_diagnostics(stamp, extra=[f"no input for {period:.1f} s"])
+            silent_s = self._silent_ticks * self._p["diagnostics_period"]
+            topics = ", ".join(self.input_topics.values())
+            self.publish_diagnostics(stamp, extra=[f"no input for {silent_s:.0f} s on {topics}"])
         self._inputs_since_tick = 0
 
     def problems(self) -> list[str]:
