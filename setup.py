@@ -30,6 +30,8 @@ setup(
             "h2o-solve = h2o_slam.cli.solve:main",
             "h2o_node = h2o_slam.h2o_node:main",
             "hybrid_vo_node = hybrid_vo.vo_node:main",
+            "h2o-replay = h2o_slam.cli.replay:main",
+            "h2o-demo = h2o_slam.cli.replay_demo:main",
         ],
     },
 )

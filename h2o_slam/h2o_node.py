@@ -67,8 +67,8 @@ PARAMETERS: list[tuple[str, Any, str, tuple[float, float] | None]] = [
      (0.001, 10.0)),
     ("graph_publish_period", 1.0, "Seconds between graph publications.", (0.01, 60.0)),
     ("diagnostics_period", 1.0, "Seconds between /diagnostics publications.", (0.05, 60.0)),
-    ("budget_ms", 5.0, "Solver time per callback in ms (run-time changeable).",
-     (0.1, 1000.0)),
+    ("budget_ms", 5.0, "Solver time per callback in ms; 0 solves every new edge in full and "
+     "revisits nothing (replays: deterministic) (run-time changeable).", (0.0, 1000.0)),
     ("d_max", 0, "Most nodes solved per edge; 0 lets the budget decide (run-time).",
      (0, 1_000_000)),
     ("keyframe_distance", 0.5, "New keyframe after this travel in m; 0 disables (run-time).",
@@ -179,7 +179,7 @@ class H2ONode(Node):
             loop_stamp_tolerance_s=float(self.p("loop_stamp_tolerance")),
             gps_time_tolerance_s=float(self.p("gps_time_tolerance")),
             gps_lever_arm_m=(lever[0], lever[1]),
-            budget_ms=float(self.p("budget_ms")),
+            budget_ms=float(self.p("budget_ms")) or None,
             d_max=d_max if d_max > 0 else None,
         )
 
@@ -267,11 +267,16 @@ class H2ONode(Node):
                                       throttle_duration_sec=1.0)
         self.mapper.released_errors.clear()
         elapsed_ms = 1e3 * (time.perf_counter() - start)
-        self.times.add(elapsed_ms, None if self.paused else float(self.p("budget_ms")))
+        budget_ms = float(self.p("budget_ms"))
+        self.times.add(elapsed_ms, None if self.paused or budget_ms == 0.0 else budget_ms)
 
     def _step(self, start: float) -> None:
-        budget_s = 1e-3 * float(self.p("budget_ms")) - (time.perf_counter() - start)
-        self.mapper.step(max(budget_s, 0.0))
+        budget_ms = float(self.p("budget_ms"))
+        if budget_ms == 0.0:
+            self.mapper.step(None)
+        else:
+            left_s = 1e-3 * budget_ms - (time.perf_counter() - start)
+            self.mapper.step(max(left_s, 0.0))
         self._graph_dirty = True
 
     def on_odom(self, msg: Any) -> None:
@@ -404,7 +409,7 @@ class H2ONode(Node):
         rejected = self.rejected + self.mapper.rejected
         values.update({f"rejected {k}": v for k, v in sorted(rejected.items())})
         values["rejected total"] = sum(rejected.values())
-        late = summary.get("p99_ms", 0.0) > budget
+        late = budget > 0.0 and summary.get("p99_ms", 0.0) > budget
         message = f"p99 {summary.get('p99_ms', 0.0):.2f} ms against a {budget:g} ms budget"
         if self.paused:
             message = "paused; " + message

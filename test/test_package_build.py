@@ -20,7 +20,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = "h2o_slam"
-EXECUTABLES = ["h2o-solve"]
+EXECUTABLES = ["h2o-solve", "h2o-replay", "h2o-demo"]
 NODES = ["h2o_node", "hybrid_vo_node"]
 BUILD_TIMEOUT_S = 300
 RUN_TIMEOUT_S = 60

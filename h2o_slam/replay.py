@@ -1,0 +1,469 @@
+"""Replay a recording through hybrid_vo_node and h2o_node in-process (``h2o-replay``).
+
+The bag's messages go, in bag-time order, straight into the nodes' ``on_*`` callbacks (no
+DDS in between, no executor spinning), and what the nodes publish comes back through
+their ``sink``: the run is as fast as the CPU allows and the same bag gives the same
+outputs. Time is the bag's: the nodes' periodic work (map→odom, diagnostics, graph) is
+called when bag time passes its period, and every output is stamped from its inputs.
+
+The back end's time budget is what makes a robot's output depend on its CPU; a replay
+therefore solves every new edge in full unless ``budget_ms`` is given (then it runs as on
+the robot, and its outputs depend on timing, which the summary says).
+
+Odometry for the back end: hybrid VO's output when the bag has stereo images, wheel
+odometry otherwise (or when asked for).
+
+Writes into the output folder: ``outputs/`` (an MCAP bag of everything the nodes
+published), TUM trajectories (``wheel.tum``, ``hybrid_vo.tum``, ``h2o.tum``; also
+``ground_truth.tum`` when the bag has it), ``graph.g2o`` (+ ``graph.json``), PNG plots
+and ``summary.json``. Damage in the bag ends the replay with a clear error after writing
+out everything processed until then.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rclpy
+from rclpy.context import Context
+from rclpy.parameter import Parameter
+from rclpy.serialization import deserialize_message
+
+import msg_adapters as ma
+from h2o_slam.errors import InputError
+from h2o_slam.graph import EdgeKind, edge_chi2
+from h2o_slam.h2o_node import H2ONode
+from h2o_slam.replay_io import (
+    BagMessage,
+    BagReader,
+    BagWriter,
+    ReplayError,
+    Storage,
+    jazzy_typestore,
+)
+from h2o_slam.replay_outputs import (
+    Progress,
+    ate_m,
+    final_error_m,
+    match_stamps,
+    plot_callback_times,
+    plot_chi2,
+    plot_trajectories,
+    write_summary,
+    write_tum,
+)
+from hybrid_vo.vo_node import HybridVoNode
+
+NS = 1_000_000_000
+
+
+@dataclass
+class ReplayOptions:
+    """What ``h2o-replay`` is asked to do.
+
+    Attributes:
+        bag: the recording.
+        output: folder to write into (created; must be empty if it exists).
+        topics: role → topic (see :func:`h2o_slam.replay_io.topic_map`).
+        odometry: ``"auto"`` (hybrid VO when the bag has images), ``"hybrid"`` or
+            ``"wheel"``.
+        budget_ms: h2o_node's per-callback budget; ``None`` solves every edge in full.
+        use_gps: feed GPS to the back end.
+        storage: storage of the output bag.
+        graph_period_s: bag seconds between graph outputs (PoseArray/Path/markers) and χ²
+            samples; the graph is large, so this is slower than on a robot.
+        h2o_params, vo_params: further node parameters.
+        progress: draw a progress bar (only on a terminal).
+    """
+
+    bag: Path
+    output: Path
+    topics: dict[str, str | None] = field(default_factory=dict)
+    odometry: str = "auto"
+    budget_ms: float | None = None
+    use_gps: bool = True
+    storage: Storage = "mcap"
+    graph_period_s: float = 10.0
+    h2o_params: dict[str, Any] = field(default_factory=dict)
+    vo_params: dict[str, Any] = field(default_factory=dict)
+    progress: bool = True
+
+
+@dataclass
+class Track:
+    """A trajectory collected during the replay: stamps (ns) and planar poses."""
+
+    stamps: list[int] = field(default_factory=list)
+    poses: list[tuple[float, float, float]] = field(default_factory=list)
+
+    def add_odometry(self, msg: Any) -> None:
+        """Append an ``Odometry``'s planar pose."""
+        sample = ma.odometry_from_msg(msg)
+        x, y, yaw, _ = sample.planar()
+        self.stamps.append(sample.stamp_ns)
+        self.poses.append((x, y, yaw))
+
+    def array(self) -> np.ndarray:
+        """Poses ``(N, 3)``."""
+        return np.asarray(self.poses, dtype=float).reshape(-1, 3)
+
+
+class Periodic:
+    """Calls ``action`` each time bag time passes another ``period_ns``."""
+
+    def __init__(self, period_s: float, action: Callable[[int], None]) -> None:
+        self.period_ns = max(1, int(period_s * NS))
+        self.action = action
+        self.next_ns: int | None = None
+
+    def advance(self, now_ns: int) -> None:
+        """Run the action if its time has come (at most once per call)."""
+        if self.next_ns is None:
+            self.next_ns = now_ns + self.period_ns
+        elif now_ns >= self.next_ns:
+            self.action(now_ns)
+            self.next_ns += self.period_ns * max(1, (now_ns - self.next_ns) // self.period_ns + 1)
+
+
+class Replay:
+    """One replay (see the module docstring); :meth:`run` does it all."""
+
+    def __init__(self, options: ReplayOptions) -> None:
+        self.options = options
+        self.tracks: dict[str, Track] = {name: Track() for name in
+                                         ("wheel", "hybrid_vo", "h2o_online", "ground_truth")}
+        self.gps_enu: list[np.ndarray] = []
+        self.h2o_ms: list[float] = []
+        self.vo_ms: list[float] = []
+        self.chi2_trace: list[tuple[float, float]] = []
+        self.now_ns = 0
+        self.start_ns: int | None = None
+        self.context = Context()
+        self.writer: BagWriter | None = None
+        self.vo: HybridVoNode | None = None
+        self.h2o: H2ONode | None = None
+        self.use_vo = False
+
+    # -- set-up -------------------------------------------------------------------------------
+
+    def _make_nodes(self, reader: BagReader) -> None:
+        has_images = {"left_image", "right_image"} <= set(reader.stats.roles)
+        mode = self.options.odometry
+        if mode == "hybrid" and not has_images:
+            raise ReplayError(self.options.bag, "--odometry hybrid needs stereo image topics")
+        self.use_vo = mode == "hybrid" or (mode == "auto" and has_images)
+        rclpy.init(context=self.context)
+        budget = self.options.budget_ms
+        h2o_params = {"budget_ms": budget if budget is not None else 0.0,
+                      **self.options.h2o_params}
+        self.h2o = H2ONode(context=self.context, parameter_overrides=_params(h2o_params))
+        self.h2o.sink = self._h2o_output
+        if self.use_vo:
+            self.vo = HybridVoNode(context=self.context,
+                                   parameter_overrides=_params(self.options.vo_params))
+            self.vo.sink = self._vo_output
+
+    def _close_nodes(self) -> None:
+        for node in (self.vo, self.h2o):
+            if node is not None:
+                node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+    # -- outputs of the nodes -----------------------------------------------------------------
+
+    def _record(self, topic: str, msg: Any) -> None:
+        if self.writer is not None:
+            self.writer.write(topic, msg, self.now_ns)
+
+    def _vo_output(self, topic: str, msg: Any) -> None:
+        self._record(topic, msg)
+        if topic.endswith("odometry/hybrid"):
+            self.tracks["hybrid_vo"].add_odometry(msg)
+            self._timed(self.h2o_ms, self._h2o().on_odom, msg)
+
+    def _h2o_output(self, topic: str, msg: Any) -> None:
+        self._record(topic, msg)
+        if topic.endswith("h2o_node/pose"):
+            track = self.tracks["h2o_online"]
+            stamp = ma.stamp_ns(msg.header)
+            R, t = ma.pose_to_matrix(msg.pose)
+            track.stamps.append(stamp)
+            track.poses.append((float(t[0]), float(t[1]), float(np.arctan2(R[1, 0], R[0, 0]))))
+
+    def _h2o(self) -> H2ONode:
+        assert self.h2o is not None
+        return self.h2o
+
+    @staticmethod
+    def _timed(into: list[float], handler: Callable[[Any], None], msg: Any) -> None:
+        start = time.perf_counter()
+        handler(msg)
+        into.append(1e3 * (time.perf_counter() - start))
+
+    # -- dispatch -----------------------------------------------------------------------------
+
+    def _dispatch(self, item: BagMessage) -> None:
+        h2o = self._h2o()
+        role, msg = item.role, item.msg
+        if role == "wheel_odom":
+            self._keep(self.tracks["wheel"], msg)
+            if self.vo is not None:
+                self.vo.on_wheel_odom(msg)
+            else:
+                self._timed(self.h2o_ms, h2o.on_odom, msg)
+        elif role in ("left_image", "right_image", "left_info", "right_info"):
+            if self.vo is not None:
+                handler = getattr(self.vo, "on_" + role)
+                if role.endswith("image"):
+                    self._timed(self.vo_ms, handler, msg)
+                else:
+                    handler(msg)
+        elif role == "gps" and self.options.use_gps:
+            self._timed(self.h2o_ms, h2o.on_gps, msg)
+        elif role == "loop_closure":
+            self._timed(self.h2o_ms, h2o.on_loop_closure, msg)
+        elif role == "ground_truth":
+            self._keep(self.tracks["ground_truth"], msg)
+
+    @staticmethod
+    def _keep(track: Track, msg: Any) -> None:
+        try:
+            track.add_odometry(msg)
+        except InputError:
+            pass  # the node counts and reports bad input; the record just skips it
+
+    def _sample_graph(self, now_ns: int) -> None:
+        h2o = self._h2o()
+        h2o.publish_graph()
+        graph = h2o.mapper.graph()
+        chi2 = float(np.sum(edge_chi2(graph))) if graph.num_edges else 0.0
+        self.chi2_trace.append(((now_ns - (self.start_ns or now_ns)) / NS, chi2))
+
+    def _publish_diagnostics(self, now_ns: int) -> None:
+        self._h2o().publish_diagnostics()
+        if self.vo is not None:
+            self.vo.publish_diagnostics(now_ns)
+
+    # -- the run ------------------------------------------------------------------------------
+
+    def run(self) -> dict[str, Any]:
+        """Replay the bag and write every output; returns the summary (also written).
+
+        Raises:
+            ReplayError: the bag cannot be replayed, or was damaged part-way (outputs up to
+                the damage are written first).
+        """
+        out = self.options.output
+        _prepare_output(out)
+        wall_start = time.perf_counter()
+        error: ReplayError | None = None
+        with BagReader(self.options.bag, self.options.topics) as reader:
+            self._make_nodes(reader)
+            try:
+                with BagWriter(out / "outputs", self.options.storage) as writer:
+                    self.writer = writer
+                    try:
+                        self._loop(reader)
+                    except ReplayError as exc:
+                        error = exc
+                    self._finish()
+                    self.writer = None
+                summary = self._write_outputs(reader, time.perf_counter() - wall_start, error)
+            finally:
+                self._close_nodes()
+        if error is not None:
+            raise error
+        return summary
+
+    def _loop(self, reader: BagReader) -> None:
+        h2o = self._h2o()
+        timers = [Periodic(float(h2o.p("transform_publish_period")),
+                           lambda _: h2o.publish_map_to_odom()),
+                  Periodic(float(h2o.p("diagnostics_period")), self._publish_diagnostics),
+                  Periodic(self.options.graph_period_s, self._sample_graph)]
+        progress = Progress((reader.end_ns - reader.start_ns) / NS, "replay") \
+            if self.options.progress else None
+        for item in reader.messages():
+            self.now_ns = item.stamp_ns
+            if self.start_ns is None:
+                self.start_ns = item.stamp_ns
+            self._dispatch(item)
+            for timer in timers:
+                timer.advance(item.stamp_ns)
+            if progress is not None:
+                progress.update((item.stamp_ns - reader.start_ns) / NS)
+        if progress is not None:
+            progress.close()
+
+    def _finish(self) -> None:
+        h2o = self._h2o()
+        if h2o.mapper.num_nodes:
+            self._sample_graph(self.now_ns)
+            h2o.publish_map_to_odom()
+        self._publish_diagnostics(self.now_ns)
+
+    # -- files --------------------------------------------------------------------------------
+
+    def _write_outputs(self, reader: BagReader, wall_s: float,
+                       error: ReplayError | None) -> dict[str, Any]:
+        out = self.options.output
+        mapper = self._h2o().mapper
+        tracks = {name: (np.asarray(t.stamps, dtype=np.int64), t.array())
+                  for name, t in self.tracks.items()}
+        if mapper.num_nodes:
+            tracks["h2o"] = (np.asarray(mapper.keyframes.stamps, dtype=np.int64), mapper.poses())
+            mapper.save(out / "graph.g2o")
+        files = {}
+        for name, (stamps, poses) in tracks.items():
+            if len(stamps) and name != "h2o_online":
+                files[name] = str(write_tum(out / f"{name}.tum", stamps, poses[:, :2],
+                                            yaw_rad=poses[:, 2]))
+        gps = _gps_points(mapper)
+        plot_trajectories(out / "trajectories.png",
+                          {k: v[1] for k, v in tracks.items() if len(v[0])}, gps)
+        plot_callback_times(out / "callback_times.png",
+                            {"h2o_node": self.h2o_ms, "hybrid_vo_node (images)": self.vo_ms},
+                            self.options.budget_ms)
+        if self.chi2_trace:
+            trace = np.asarray(self.chi2_trace)
+            plot_chi2(out / "chi2.png", trace[:, 0], trace[:, 1])
+        summary = self._summary(reader, tracks, wall_s, error, files)
+        write_summary(out / "summary.json", summary)
+        return summary
+
+    def _summary(self, reader: BagReader, tracks: dict[str, tuple[np.ndarray, np.ndarray]],
+                 wall_s: float, error: ReplayError | None,
+                 files: dict[str, str]) -> dict[str, Any]:
+        h2o = self._h2o()
+        duration_s = ((self.now_ns - self.start_ns) / NS) if self.start_ns is not None else 0.0
+        ms = np.asarray(self.h2o_ms)
+        summary: dict[str, Any] = {
+            "bag": str(self.options.bag),
+            "odometry": "hybrid_vo" if self.use_vo else "wheel",
+            "budget_ms": self.options.budget_ms,
+            "deterministic": self.options.budget_ms is None,
+            "bag_duration_s": duration_s,
+            "wall_time_s": wall_s,
+            "speed_x_realtime": duration_s / wall_s if wall_s > 0 else None,
+            "messages": dict(reader.stats.counts),
+            "out_of_order": dict(reader.stats.out_of_order),
+            "salvaged": reader.stats.salvaged,
+            "error": None if error is None else str(error),
+            "graph": {"nodes": h2o.mapper.num_nodes,
+                      "edges": h2o.mapper.graph().num_edges if h2o.mapper.num_nodes else 0,
+                      "chi2": self.chi2_trace[-1][1] if self.chi2_trace else None},
+            "h2o_callback_ms": _percentiles(ms),
+            "vo_callback_ms": _percentiles(np.asarray(self.vo_ms)),
+            "rejected": {k: v for k, v in (h2o.rejected + h2o.mapper.rejected).items()},
+            "accepted": dict(h2o.mapper.accepted),
+            "files": files,
+        }
+        summary["accuracy"] = _accuracy(tracks)
+        return summary
+
+
+def _percentiles(ms: np.ndarray) -> dict[str, float] | None:
+    if not len(ms):
+        return None
+    return {"count": int(len(ms)), "mean": float(ms.mean()),
+            "p50": float(np.percentile(ms, 50)), "p99": float(np.percentile(ms, 99)),
+            "max": float(ms.max())}
+
+
+def _accuracy(tracks: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
+    """ATE (after a planar rigid alignment) and final position error of each trajectory
+    against the ground truth, matched by stamp."""
+    truth_stamps, truth = tracks.get("ground_truth", (np.zeros(0), np.zeros((0, 3))))
+    if not len(truth_stamps):
+        return {}
+    result = {}
+    for name, (stamps, poses) in tracks.items():
+        if name == "ground_truth" or not len(stamps):
+            continue
+        i, j = match_stamps(stamps, truth_stamps, NS // 20)
+        if len(i) < 3:
+            continue
+        result[name] = {"ate_m": ate_m(poses[i, :2], truth[j, :2]),
+                        "final_error_m": final_error_m(poses[i, :2], truth[j, :2]),
+                        "matched": int(len(i))}
+    return result
+
+
+def _gps_points(mapper: Any) -> np.ndarray | None:
+    if not mapper.num_nodes:
+        return None
+    graph = mapper.graph()
+    gps = graph.kind == EdgeKind.POSITION
+    return graph.meas_t[gps] if np.any(gps) else None
+
+
+def _params(values: dict[str, Any]) -> list[Parameter]:
+    return [Parameter(name, value=value) for name, value in values.items()]
+
+
+def _prepare_output(out: Path) -> None:
+    if out.exists() and any(out.iterdir()):
+        raise ReplayError(out, "output folder exists and is not empty")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ReplayError(out, f"cannot create the output folder ({exc})") from None
+
+
+def replay(options: ReplayOptions) -> dict[str, Any]:
+    """Run one replay (see :class:`Replay`)."""
+    return Replay(options).run()
+
+
+def format_summary(summary: dict[str, Any]) -> str:
+    """A few lines for the terminal."""
+    lines = [f"replayed {summary['bag_duration_s']:.1f} s of bag in "
+             f"{summary['wall_time_s']:.1f} s "
+             f"({summary['speed_x_realtime'] or 0:.1f}x real time), odometry from "
+             f"{summary['odometry']}; graph {summary['graph']['nodes']} nodes, "
+             f"{summary['graph']['edges']} edges"]
+    for name, acc in summary.get("accuracy", {}).items():
+        lines.append(f"  {name:<12} ATE {acc['ate_m']:.3f} m, final error "
+                     f"{acc['final_error_m']:.3f} m")
+    if summary.get("rejected"):
+        lines.append("  rejected: " + json.dumps(summary["rejected"]))
+    return "\n".join(lines)
+
+
+def publish_realtime(bag: Path, topics: dict[str, str | None], rate: float) -> int:
+    """Publish the mapped topics at the recorded pace (``rate`` × real time)."""
+    if not rate > 0.0:
+        raise ReplayError("--rate", f"must be > 0, got {rate}")
+    store = jazzy_typestore()
+    rclpy.init()
+    node = rclpy.create_node("h2o_replay")
+    publishers: dict[str, Any] = {}
+    try:
+        with BagReader(bag, topics, required=()) as reader:
+            wall0, bag0 = time.monotonic(), None
+            for item in reader.messages():
+                bag0 = item.stamp_ns if bag0 is None else bag0
+                delay = (item.stamp_ns - bag0) * 1e-9 / rate - (time.monotonic() - wall0)
+                if delay > 0:
+                    time.sleep(delay)
+                cls = _message_class(item.type_name)
+                if item.topic not in publishers:
+                    publishers[item.topic] = node.create_publisher(cls, item.topic, 100)
+                raw = store.serialize_cdr(item.msg, item.type_name)
+                publishers[item.topic].publish(deserialize_message(bytes(raw), cls))
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def _message_class(type_name: str) -> Any:
+    package, kind, name = type_name.split("/")
+    return getattr(importlib.import_module(f"{package}.{kind}"), name)
