@@ -24,7 +24,7 @@ unexport ROS_LOCALHOST_ONLY ROS_AUTOMATIC_DISCOVERY_RANGE ROS_STATIC_PEERS
 .PHONY: help venv demo test bench clean
 
 help:
-	@echo "make demo   synthetic 400-pose graph -> h2o-solve (offline, 10 passes) -> report JSON"
+	@echo "make demo   h2o-demo: simulated drive -> bag -> replay through both nodes -> ATE table"
 	@echo "make test   ruff, mypy and pytest (what CI runs)"
 	@echo "make bench  benchmarks against reference solvers (installs requirements-bench.txt)"
 	@echo "make venv   create/update .venv (reruns when a requirements file, setup.py or tools/tf2_msgs changes)"
@@ -53,12 +53,8 @@ $(BENCH_STAMP): $(DEV_STAMP) requirements-bench.txt
 	@touch $@
 
 demo: venv
-	@mkdir -p $(OUT)
-	$(PY) -m h2o_slam.synthetic $(OUT)/graph.g2o --poses 400 --seed 1
-	$(VENV)/bin/h2o-solve $(OUT)/graph.g2o --output $(OUT)/solved.g2o --mode offline \
-	  --passes 10 --report $(OUT)/report.json > /dev/null
-	@$(PY) -m json.tool $(OUT)/report.json
-	@echo "graph: $(OUT)/graph.g2o  solved: $(OUT)/solved.g2o  report: $(OUT)/report.json"
+	@rm -rf $(OUT)
+	$(VENV)/bin/h2o-demo --output $(OUT)
 
 # Runs all three checks even when one fails, then fails if any did. pytest's exit code 5
 # (no tests collected) is a failure here: a green run must have run tests.

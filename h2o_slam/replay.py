@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import rclpy
 from rclpy.context import Context
+from rclpy.logging import LoggingSeverity
 from rclpy.parameter import Parameter
 from rclpy.serialization import deserialize_message
 
@@ -81,6 +82,8 @@ class ReplayOptions:
             samples; the graph is large, so this is slower than on a robot.
         h2o_params, vo_params: further node parameters.
         progress: draw a progress bar (only on a terminal).
+        verbose: let the nodes log warnings (each rejected message); the summary counts
+            them either way.
     """
 
     bag: Path
@@ -94,6 +97,7 @@ class ReplayOptions:
     h2o_params: dict[str, Any] = field(default_factory=dict)
     vo_params: dict[str, Any] = field(default_factory=dict)
     progress: bool = True
+    verbose: bool = False
 
 
 @dataclass
@@ -169,6 +173,10 @@ class Replay:
             self.vo = HybridVoNode(context=self.context,
                                    parameter_overrides=_params(self.options.vo_params))
             self.vo.sink = self._vo_output
+        if not self.options.verbose:
+            for node in (self.h2o, self.vo):
+                if node is not None:
+                    node.get_logger().set_level(LoggingSeverity.ERROR)
 
     def _close_nodes(self) -> None:
         for node in (self.vo, self.h2o):

@@ -44,6 +44,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--graph-period", type=float, default=10.0,
                    help="bag seconds between graph outputs and chi2 samples")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    p.add_argument("--verbose", action="store_true",
+                   help="the nodes log every rejected message (the summary counts them)")
     p.add_argument("--realtime", action="store_true",
                    help="publish the bag's mapped topics on the ROS graph at the recorded "
                         "pace instead (for external nodes); no outputs are written")
@@ -63,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         options = ReplayOptions(
             bag=args.bag, output=args.output, topics=topics, odometry=args.odometry,
             budget_ms=args.budget_ms, use_gps=not args.no_gps, storage=args.storage,
-            graph_period_s=args.graph_period, progress=not args.quiet)
+            graph_period_s=args.graph_period, progress=not args.quiet, verbose=args.verbose)
         summary = replay(options)
     except (H2OError, OSError) as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
