@@ -26,7 +26,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry
@@ -37,7 +36,6 @@ from rcl_interfaces.msg import (
     ParameterDescriptor,
     SetParametersResult,
 )
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -50,6 +48,7 @@ from h2o_slam import geometry as geo
 from h2o_slam.errors import H2OError, InputError
 from h2o_slam.graph import EdgeKind, edge_chi2
 from h2o_slam.mapper import Mapper, MapperConfig
+from h2o_slam.node_main import run_node
 from h2o_slam.timing import CallbackTimes
 
 NODE_NAME = "h2o_node"
@@ -467,22 +466,7 @@ def _ref(ref: ma.PoseRef) -> int | tuple[str, int]:
 def main(args: list[str] | None = None) -> int:
     """``ros2 run h2o_slam h2o_node``; a bad parameter or map file ends it with one line and
     exit code 1."""
-    rclpy.init(args=args)
-    try:
-        try:
-            node = H2ONode()
-        except (H2OError, ValueError, OSError) as exc:
-            print(f"h2o_node: {exc}", file=sys.stderr)
-            return 1
-        try:
-            rclpy.spin(node)
-        except (KeyboardInterrupt, ExternalShutdownException):
-            pass  # Ctrl-C or SIGTERM: a normal stop
-        finally:
-            node.destroy_node()
-    finally:
-        rclpy.try_shutdown()
-    return 0
+    return run_node(H2ONode, NODE_NAME, (H2OError, ValueError, OSError), args)
 
 
 if __name__ == "__main__":

@@ -30,13 +30,11 @@ from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TransformStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
@@ -44,6 +42,7 @@ from std_srvs.srv import SetBool, Trigger
 
 import msg_adapters as ma
 from h2o_slam.errors import InputError
+from h2o_slam.node_main import run_node
 from hybrid_vo.errors import HybridVOError
 from hybrid_vo.frontend import (
     BAD_IMAGE,
@@ -547,22 +546,8 @@ class HybridVoNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Run the node until shutdown; a bad parameter ends it with one line and exit code 1."""
-    rclpy.init(args=args)
-    try:
-        try:
-            node = HybridVoNode()
-        except (HybridVOError, InputError, ParameterException) as exc:
-            print(f"hybrid_vo_node: {exc}", file=sys.stderr)
-            return 1
-        try:
-            rclpy.spin(node)
-        except (KeyboardInterrupt, ExternalShutdownException):
-            pass
-        finally:
-            node.destroy_node()
-    finally:
-        rclpy.try_shutdown()
-    return 0
+    return run_node(HybridVoNode, NODE_NAME, (HybridVOError, InputError, ParameterException),
+                    args)
 
 
 if __name__ == "__main__":
