@@ -279,17 +279,18 @@ class H2ONode(Node):
         self._graph_dirty = True
 
     def on_odom(self, msg: Any) -> None:
-        """An odometry message: maybe a keyframe, then one solver step."""
+        """An odometry message: maybe a keyframe, its pose in ``map`` out, then one solver
+        step with what is left of the budget (publishing first keeps the output's latency
+        and the callback's length both independent of the solver)."""
         start = time.perf_counter()
 
         def handle() -> None:
             sample = ma.odometry_from_msg(msg)
             x, y, yaw, _ = sample.planar()
-            node = self.mapper.add_odometry(sample.stamp_ns, np.array([x, y, yaw]))
+            self.mapper.add_odometry(sample.stamp_ns, np.array([x, y, yaw]))
             self._last_stamp_ns = max(self._last_stamp_ns, sample.stamp_ns)
+            self.publish_pose()
             self._step(start)
-            if node is not None or self.mapper.num_nodes:
-                self.publish_pose()
 
         self._guarded("odometry", handle)
 
