@@ -81,6 +81,9 @@ class OdometerConfig:
         yaw_sigma_floor_rad: lower bound of the reported yaw σ (never a zero covariance).
         sigma_merge: ``"thesis"`` (as printed) or ``"inverse_variance"``; see
             :func:`hybrid_vo.patches.merge_sigmas`.
+        parallax_correction: subtract from each patch's yaw the parallax that the wheel
+            travel and the patch's stereo range predict (:func:`hybrid_vo.patches.parallax_rad`);
+            False keeps the thesis' assumption that parallax below ``θ_p/2`` is invisible.
     """
 
     work_width_px: int = 160
@@ -103,6 +106,9 @@ class OdometerConfig:
     fallback_yaw_sigma_rad: float = 0.02
     yaw_sigma_floor_rad: float = 1e-4
     sigma_merge: Literal["thesis", "inverse_variance"] = "thesis"
+    parallax_correction: bool = True
+    balance_sides: bool = True
+    symmetric_subpixel: bool = True
 
     def __post_init__(self) -> None:
         def positive(name: str) -> None:
@@ -304,7 +310,7 @@ class HybridOdometer:
             reason = FallbackReason.FIRST_FRAME
             result: tuple[float, float] | None = None
         else:
-            result, reason, counts = self._track(prev, cur, float(wheel[2]))
+            result, reason, counts = self._track(prev, cur, wheel)
         cfg = self.config
         if result is None:
             delta = wheel.copy()
@@ -389,13 +395,37 @@ class HybridOdometer:
         hi = int(math.floor(centre + half)) + 1
         return max(lo, 0), min(hi, cols)
 
+    def _parallax(
+        self, kept: list[tuple[int, int, float]], theta_hat: float, wheel: FloatArray
+    ) -> FloatArray:
+        """Per-patch parallax (rad) from the wheel travel and each patch's stereo range.
+
+        (2.3) only bounds the parallax of the patches it keeps to ``θ_p/2``; a sub-pixel NCC
+        peak measures it, and with near objects beside the path it is one-sided for many
+        frames at a time: a heading drift. The camera travels along the translation (2.4)
+        would give for the rotation ``theta_hat`` (the patches' median), plus the swing of
+        its mounting offset about ``base_link``.
+        """
+        half = (theta_hat - wheel[2]) / 2.0
+        c, s = math.cos(half), math.sin(half)
+        tx, ty = c * wheel[0] - s * wheel[1], s * wheel[0] + c * wheel[1]
+        m = self.mounting
+        c, s = math.cos(theta_hat), math.sin(theta_hat)
+        tx += (c - 1.0) * m.forward_m - s * m.left_m
+        ty += s * m.forward_m + (c - 1.0) * m.left_m
+        sph = self.spherical
+        return np.array(
+            [pt.parallax_rad(rng, float(sph.theta_of_column(col)), tx, ty) for _, col, rng in kept]
+        )
+
     def _track(
-        self, prev: _Prepared, cur: _Prepared, theta_w_rad: float
+        self, prev: _Prepared, cur: _Prepared, wheel: FloatArray
     ) -> tuple[tuple[float, float] | None, FallbackReason, tuple[int, int, int, int]]:
         cfg = self.config
+        theta_w_rad = float(wheel[2])
         sph = self.spherical
         a = sph.a_rad_per_px
-        hw, hh = cfg.patch_width_px // 2, cfg.patch_height_px // 2
+        hw = cfg.patch_width_px // 2
         shift_cols = theta_w_rad / a
         lo, hi = self._sampling_columns(shift_cols)
         # Corners in order of strength; candidates beyond the first N stand in for patches
@@ -411,9 +441,13 @@ class HybridOdometer:
         )
         if len(picks) < cfg.min_patches:
             return None, FallbackReason.BLANK_VIEW, (len(picks), 0, 0, 0)
+        # The direction of travel in the previous image (the wheels' midpoint heading).
+        travel_col = self.frontal_col - theta_w_rad / (2.0 * a)
+        if cfg.balance_sides:
+            picks = pt.alternate_sides(picks, travel_col)
         # Range test (2.3): per-patch stereo in the previous frame's planar pair.
         intr = self.work_intrinsics
-        far: list[tuple[int, int]] = []
+        far: list[tuple[int, int, float]] = []  # (row, col, horizontal range m)
         n_sampled = 0
         for r, c in picks:
             if len(far) == cfg.num_patches:
@@ -441,41 +475,56 @@ class HybridOdometer:
                 if theta <= self.theta_max_rad
                 else pt.r_min_m(cfg.max_travel_m, theta, a)
             )
-            if depth * ray_scale >= r_min:  # NaN (unreliable stereo) compares False: dropped
-                far.append((r, c))
+            dist = depth * ray_scale
+            if dist >= r_min:  # NaN (unreliable stereo) compares False: dropped
+                phi = sph.phi_o_rad + a * r
+                far.append((r, c, dist * math.cos(phi)))
         n_far = len(far)
         if n_far < cfg.min_patches:
             return None, FallbackReason.NEAR_FEATURES, (n_sampled, n_far, 0, 0)
-        rows, cols = cur.spherical.shape
         estimates: list[float] = []
         sigmas: list[float] = []
-        for r, c in far:
-            tmpl = prev.spherical[r - hh : r + hh + 1, c - hw : c + hw + 1]
+        kept: list[tuple[int, int, float]] = []
+        for r, c, rng_m in far:
             # Window spans the previous and the wheel-predicted position, plus half a patch
             # on all sides (§2.3.3).
             c0 = int(math.floor(min(c, c + shift_cols))) - hw - hw
             c1 = int(math.ceil(max(c, c + shift_cols))) + hw + hw + 1
-            r0, r1 = r - hh - hh, r + hh + hh + 1
-            c0, c1, r0, r1 = max(c0, 0), min(c1, cols), max(r0, 0), min(r1, rows)
-            found = pt.ncc_search(tmpl, cur.spherical[r0:r1, c0:c1])
+            found = pt.track_patch(
+                prev.spherical,
+                cur.spherical,
+                r,
+                c,
+                cfg.patch_width_px,
+                cfg.patch_height_px,
+                c0,
+                c1,
+                cfg.symmetric_subpixel,
+            )
             if found is None:
                 continue
-            _, col, peak, sigma_px = found
+            shift_px, peak, sigma_px = found
             if peak < cfg.min_ncc or not math.isfinite(sigma_px):
                 continue
-            estimates.append((c0 + col + hw - c) * a)
+            estimates.append(shift_px * a)
             sigmas.append(sigma_px * a)
+            kept.append((r, c, rng_m))
         n_matched = len(estimates)
         if n_matched < cfg.min_patches:
             return None, FallbackReason.POOR_MATCH, (n_sampled, n_far, n_matched, 0)
         est = np.array(estimates)
         sig = np.array(sigmas)
+        if cfg.parallax_correction:
+            est = est - self._parallax(kept, float(np.median(est)), wheel)
         inliers = pt.vote(est, a)
         n_in = int(inliers.sum())
         if n_in == 0:
             return None, FallbackReason.NO_CONSENSUS, (n_sampled, n_far, n_matched, 0)
         # The inliers agree to within θ_p; weight them by their peak sharpness.
         w = 1.0 / sig[inliers] ** 2
+        if cfg.balance_sides:
+            cols_in = np.array([col for _, col, _ in kept])[inliers]
+            w = pt.balance_weights(w, cols_in < travel_col)
         theta_v = float(np.sum(w * est[inliers]) / np.sum(w))
         sigma = pt.merge_sigmas(sig[inliers], cfg.sigma_merge)
         return (theta_v, sigma), FallbackReason.NONE, (n_sampled, n_far, n_matched, n_in)

@@ -39,6 +39,26 @@ def bearing_shift_rad(range_m: float, theta_rad: float, d_m: float) -> float:
     return math.atan2(range_m * math.sin(theta), range_m * math.cos(theta) - d_m) - theta
 
 
+def parallax_rad(range_m: float, theta_rad: float, dx_m: float, dy_m: float) -> float:
+    """Column-direction shift (rad, θ to the right) of a point seen from a translating camera.
+
+    The point lies ``range_m`` away (horizontally) at bearing θ (to the right of the base
+    x axis); the camera moves by ``(dx_m, dy_m)`` (base frame, y to the left) without
+    turning. A positive result moves the point to the right in the spherical image, as a
+    left turn would. The 2-D generalisation of Fig. 2.2 (:func:`bearing_shift_rad` is the
+    forward-only case): the parallax (2.3) bounds by ``θ_p/2`` at ``r_min``, which a
+    sub-pixel NCC peak still measures and the odometer therefore subtracts. ``inf`` range
+    gives 0.
+    """
+    if not math.isfinite(range_m):
+        return 0.0
+    # REP-103 bearing ψ = −θ; the point's new bearing from the moved camera is ψ'.
+    px, py = range_m * math.cos(theta_rad), -range_m * math.sin(theta_rad)
+    psi_new = math.atan2(py - dy_m, px - dx_m)
+    shift = -theta_rad - psi_new
+    return (shift + math.pi) % (2.0 * math.pi) - math.pi
+
+
 def sample_patches(
     image: Float32Array,
     col_lo: int,
@@ -80,6 +100,24 @@ def sample_patches(
         picks.append((r, c + lo))
         resp[max(0, r - hh) : r + hh + 1, max(0, c - hw) : c + hw + 1] = 0.0
     return picks
+
+
+def alternate_sides(picks: list[tuple[int, int]], split_col: float) -> list[tuple[int, int]]:
+    """Patch centres reordered to alternate between the two sides of column ``split_col``.
+
+    ``picks`` come strongest first; the order within each side is kept and the strongest
+    pick leads. Forward travel shifts far features outward on both sides of the direction
+    of travel by ``d·sin θ / r``; taking the first N of this order keeps the sides in
+    balance so that the parallax of features too far for stereo to range cancels in the
+    mean instead of adding up over a drive.
+    """
+    left = [p for p in picks if p[1] < split_col]
+    right = [p for p in picks if p[1] >= split_col]
+    first, second = (left, right) if left and (not right or picks[0] == left[0]) else (right, left)
+    out: list[tuple[int, int]] = []
+    for i in range(max(len(first), len(second))):
+        out += first[i : i + 1] + second[i : i + 1]
+    return out
 
 
 def parabola_offset(left: float, mid: float, right: float) -> float:
@@ -127,6 +165,62 @@ def ncc_search(
     if 0 < r < res.shape[0] - 1:
         dr = parabola_offset(float(res[r - 1, c]), peak, float(res[r + 1, c]))
     return r + dr, c + dc, peak, peak_sigma_px(lft, peak, rgt)
+
+
+def track_patch(
+    prev: Float32Array,
+    cur: Float32Array,
+    row: int,
+    col: int,
+    patch_w: int,
+    patch_h: int,
+    col_lo: int,
+    col_hi: int,
+    symmetric: bool = True,
+    max_asymmetry_px: float = 1.0,
+) -> tuple[float, float, float] | None:
+    """Column shift (px) of the patch centred at ``(row, col)`` of ``prev`` into ``cur``.
+
+    The search window spans columns ``[col_lo, col_hi)`` and half a patch above and below.
+    Returns ``(shift_px, peak_ncc, sigma_px)`` of the forward match, or None when no
+    interior peak exists.
+
+    ``symmetric``: the parabola through an NCC peak is not centred on the true shift when the
+    peak is lopsided, which it is for most textures: identical images give a non-zero
+    shift, the same for the same feature in frame after frame, i.e. a heading drift. The
+    patch found in ``cur`` is therefore matched back into ``prev`` and the two shifts are
+    averaged, ``(s_fwd − s_bwd)/2``: a true shift flips sign between the two directions
+    while the texture's lopsidedness does not, so it cancels. A back match that fails or
+    disagrees with the forward one by more than ``max_asymmetry_px`` rejects the patch.
+    """
+    rows, cols = cur.shape
+    hw, hh = patch_w // 2, patch_h // 2
+    tmpl = prev[row - hh : row + hh + 1, col - hw : col + hw + 1]
+    r0, r1 = max(row - 2 * hh, 0), min(row + 2 * hh + 1, rows)
+    c0, c1 = max(col_lo, 0), min(col_hi, cols)
+    found = ncc_search(tmpl, cur[r0:r1, c0:c1])
+    if found is None:
+        return None
+    f_row, f_col, peak, sigma_px = found
+    fwd = c0 + f_col + hw - col
+    if not symmetric:
+        return fwd, peak, sigma_px
+    rc = int(round(r0 + f_row + hh))
+    cc = int(round(c0 + f_col + hw))
+    if rc - hh < 0 or rc + hh >= rows or cc - hw < 0 or cc + hw >= cols:
+        return None
+    back = cur[rc - hh : rc + hh + 1, cc - hw : cc + hw + 1]
+    # Two columns either side of where the forward match says the patch came from.
+    guess = int(round(cc - fwd))
+    b0, b1 = max(guess - hw - 2, 0), min(guess + hw + 3, cols)
+    rb0, rb1 = max(rc - 2 * hh, 0), min(rc + 2 * hh + 1, rows)
+    found_b = ncc_search(back, prev[rb0:rb1, b0:b1])
+    if found_b is None:
+        return None
+    bwd = b0 + found_b[1] + hw - cc
+    if abs(fwd + bwd) > max_asymmetry_px:
+        return None
+    return 0.5 * (fwd - bwd), peak, sigma_px
 
 
 def stereo_range_m(
@@ -185,6 +279,20 @@ def vote(estimates_rad: FloatArray, theta_p_rad: float) -> NDArray[np.bool_]:
     tally = close.sum(axis=1)
     result: NDArray[np.bool_] = tally > n / 2.0
     return result
+
+
+def balance_weights(weights: FloatArray, left: NDArray[np.bool_]) -> FloatArray:
+    """Weights rescaled so both sides of the direction of travel weigh the same in total.
+
+    With patches on both sides, an outward parallax common to them cancels in the weighted
+    mean; with one side empty the weights are returned unchanged.
+    """
+    w = np.asarray(weights, dtype=float).copy()
+    wl, wr = float(np.sum(w[left])), float(np.sum(w[~left]))
+    if wl > 0.0 and wr > 0.0:
+        w[left] *= 0.5 / wl
+        w[~left] *= 0.5 / wr
+    return w
 
 
 def merge_sigmas(

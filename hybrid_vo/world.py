@@ -300,15 +300,34 @@ class World:
         th, tw = tex.shape
         # Texture wraps around the circumference at 1 texel per ~1 cm of arc.
         around = (np.arctan2(hy, hx) + math.pi) * obj.radius_m / 0.01 + obj.texture_offset * tw
-        # Nearest texel of the pre-blurred level (cv2.remap caps maps at 32767 pixels).
-        u = np.floor(around).astype(np.int64) % tw
-        v = np.floor(hz / 0.01).astype(np.int64) % th
-        vals = tex[v, u].reshape(-1, 1)
+        # Bilinear lookup by hand (cv2.remap caps maps at 32767 pixels): a nearest-texel
+        # lookup snaps the texture to whole 1 cm texels, which at 640×480 and a few metres
+        # is a large part of a pixel and makes the texture jitter as the camera moves.
+        vals = _bilinear_wrap(tex, np.asarray(around, dtype=np.float64), hz / 0.01)
         img = img.copy()
         depth = depth.copy()
-        img[rows, cols] = vals[:, 0]
+        img[rows, cols] = vals
         depth[rows, cols] = t
         return img, depth
+
+
+def _bilinear_wrap(
+    tex: NDArray[np.float32], x: FloatArray, y: FloatArray
+) -> NDArray[np.float32]:
+    """``tex`` sampled bilinearly at ``(x, y)`` (texel units, centres at integers), wrapping."""
+    th, tw = tex.shape
+    x0 = np.floor(x)
+    y0 = np.floor(y)
+    fx = (x - x0).astype(np.float32)
+    fy = (y - y0).astype(np.float32)
+    u0 = x0.astype(np.int64) % tw
+    v0 = y0.astype(np.int64) % th
+    u1 = (u0 + 1) % tw
+    v1 = (v0 + 1) % th
+    top = tex[v0, u0] * (1.0 - fx) + tex[v0, u1] * fx
+    bottom = tex[v1, u0] * (1.0 - fx) + tex[v1, u1] * fx
+    out: NDArray[np.float32] = (top * (1.0 - fy) + bottom * fy).astype(np.float32)
+    return out
 
 
 def _blur_wrap(tex: NDArray[np.float32], sigma_px: float) -> NDArray[np.float32]:

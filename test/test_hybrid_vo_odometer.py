@@ -155,3 +155,26 @@ def test_bad_frames_raise_and_leave_state_alone() -> None:
     with pytest.raises(FrameError, match="wheel_delta"):
         odo.process(StereoFrame(good, good, 0), np.array([0.1, math.nan, 0.0]))
     assert odo.stats.frames == 0
+
+
+def test_posts_beside_the_path_do_not_bend_a_straight_drive() -> None:
+    # Posts 4–27 m ahead on the left pass (2.3) (their parallax is under half a pixel) but a
+    # sub-pixel NCC peak still sees it, always on the same side: without the correction
+    # the heading bends by about 0.1 rad over 20 m of straight road.
+    drive = make_drive(DriveConfig(segments=((15.0, 1.3, 0.0),), num_objects=0, seed=2))
+    info = drive.camera_info
+    posts = tuple(
+        NearObject(4.0 + 2.5 * k, 1.2 + 0.3 * (k % 3), 0.3, 3.0, 0.1 * k) for k in range(10)
+    )
+    drive.world = World(drive.world.config, posts, info.intrinsics, info.mounting)
+    frames = list(drive.frames())
+    final_yaw = {}
+    for correct in (False, True):
+        odo = HybridOdometer(
+            info.intrinsics, info.mounting, OdometerConfig(parallax_correction=correct)
+        )
+        poses = [odo.process(f, drive.wheel_deltas[i]).pose for i, f in enumerate(frames)]
+        assert odo.stats.deferred_fraction < 0.05
+        final_yaw[correct] = abs(poses[-1][2])
+    assert final_yaw[False] > 0.04
+    assert final_yaw[True] < 0.01

@@ -19,6 +19,13 @@ def _texture(shape: tuple[int, int], seed: int) -> np.ndarray:
     return cv2.GaussianBlur(img, (0, 0), 1.5)
 
 
+def _shifted(img: np.ndarray, shift: float) -> np.ndarray:
+    """``img`` moved right by ``shift`` columns (Fourier interpolation: no bilinear blur)."""
+    freqs = np.fft.rfftfreq(img.shape[1])
+    spec = np.fft.rfft(img, axis=1) * np.exp(-2j * np.pi * freqs * shift)
+    return np.fft.irfft(spec, n=img.shape[1], axis=1).astype(np.float32)
+
+
 # ----------------------------------------------------------------------------- (2.3)
 
 
@@ -55,11 +62,7 @@ def test_r_min_grows_with_bearing() -> None:
 @pytest.mark.parametrize("shift", [-3.3, -0.5, 0.0, 0.25, 1.7, 4.45])
 def test_ncc_finds_a_known_shift_to_sub_pixel_accuracy(shift) -> None:
     base = _texture((9, 200), 3)
-    # Shift by a fraction of a pixel with bilinear-free Fourier interpolation along rows.
-    freqs = np.fft.rfftfreq(base.shape[1])
-    moved = np.fft.irfft(
-        np.fft.rfft(base, axis=1) * np.exp(-2j * np.pi * freqs * shift), n=base.shape[1], axis=1
-    ).astype(np.float32)
+    moved = _shifted(base, shift)
     r, c = 4, 100
     tmpl = base[r - 1 : r + 2, c - 6 : c + 7]
     window = moved[r - 2 : r + 3, c - 20 : c + 21]
@@ -167,3 +170,97 @@ def test_stereo_range_from_a_known_disparity() -> None:
     assert z == pytest.approx(130.0 * 0.12 / disparity, rel=0.05)
     flat = np.full_like(left, 100.0)
     assert math.isnan(pt.stereo_range_m(flat, flat, 60.0, 15.0, 130.0, 0.12, 40, 4, 2, 0.6))
+
+
+# ----------------------------------------------------------------------------- parallax
+
+
+@settings(max_examples=200, deadline=None)
+@given(r=st.floats(1.0, 500.0), theta=st.floats(0.0, 0.6), d=st.floats(0.0, 0.5))
+def test_parallax_of_forward_travel_is_fig_2_2(r, theta, d) -> None:
+    # Forward travel: the general parallax is the construction of Fig. 2.2 / (2.3).
+    assert pt.parallax_rad(r, theta, d, 0.0) == pytest.approx(
+        pt.bearing_shift_rad(r, theta, d), abs=1e-12
+    )
+    # Mirror image: a point on the left shifts left by as much.
+    assert pt.parallax_rad(r, -theta, d, 0.0) == pytest.approx(
+        -pt.parallax_rad(r, theta, d, 0.0), abs=1e-12
+    )
+
+
+def test_parallax_of_sideways_travel_and_far_points() -> None:
+    # Step 1 m to the left past a point 10 m straight ahead: it moves right by atan(1/10).
+    assert pt.parallax_rad(10.0, 0.0, 0.0, 1.0) == pytest.approx(math.atan(0.1))
+    assert pt.parallax_rad(math.inf, 0.1, 0.13, 0.0) == 0.0
+    # At r_min of (2.3) the shift is θ_p/2 — the half pixel the thesis calls invisible.
+    r = pt.r_min_m(0.13, 0.14, 0.008)
+    assert pt.parallax_rad(r, 0.14, 0.13, 0.0) == pytest.approx(0.004)
+
+
+def test_alternate_sides_keeps_strength_order_per_side() -> None:
+    picks = [(1, 10), (2, 12), (3, 30), (4, 11), (5, 40)]
+    assert pt.alternate_sides(picks, 20.0) == [(1, 10), (3, 30), (2, 12), (5, 40), (4, 11)]
+    # The strongest pick leads whichever side it is on; a lone side is kept as it was.
+    assert pt.alternate_sides(picks[2:], 20.0)[0] == (3, 30)
+    assert pt.alternate_sides(picks[:2], 20.0) == picks[:2]
+
+
+def test_balance_weights_cancel_a_common_outward_parallax() -> None:
+    theta = np.array([-0.12, -0.1, 0.05, 0.08, 0.13, 0.02])
+    w = np.array([1.0, 4.0, 1.0, 2.0, 1.0, 3.0])
+    left = theta < 0
+    bw = pt.balance_weights(w, left)
+    assert bw[left].sum() == pytest.approx(bw[~left].sum())
+    # Same ratios within a side; one-sided sets are left alone.
+    assert bw[0] / bw[1] == pytest.approx(0.25)
+    np.testing.assert_array_equal(pt.balance_weights(w, np.zeros(6, bool)), w)
+
+
+# ----------------------------------------------------------------------------- tracking
+
+
+def _lopsided_texture(seed: int) -> np.ndarray:
+    return _texture((9, 80), seed)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_symmetric_match_of_an_unmoved_patch_is_exactly_zero(seed) -> None:
+    img = _lopsided_texture(seed)
+    fwd = pt.track_patch(img, img, 4, 40, 13, 3, 20, 61, symmetric=False)
+    sym = pt.track_patch(img, img, 4, 40, 13, 3, 20, 61, symmetric=True)
+    assert fwd is not None and sym is not None
+    assert sym[0] == pytest.approx(0.0, abs=1e-3)  # float32 NCC sums, nothing more
+    # The parabola alone is pulled off zero by the lopsided NCC peak of most textures.
+    if seed == 0:
+        assert abs(fwd[0]) > 1e-3
+
+
+def test_symmetric_match_averages_out_lopsided_peaks_over_textures() -> None:
+    biases = {True: [], False: []}
+    for seed in range(40):
+        img = _lopsided_texture(100 + seed)
+        for symmetric in (True, False):
+            found = pt.track_patch(img, img, 4, 40, 13, 3, 20, 61, symmetric=symmetric)
+            assert found is not None
+            biases[symmetric].append(abs(found[0]))
+    assert max(biases[True]) < 1e-3
+    assert np.mean(biases[False]) > 0.01
+
+
+@pytest.mark.parametrize("shift", [-2.0, 0.5, 3.0, 6.25])
+def test_track_patch_finds_a_known_shift(shift) -> None:
+    base = _texture((9, 200), 7)
+    moved = _shifted(base, shift)
+    found = pt.track_patch(base, moved, 4, 100, 13, 3, 80, 125)
+    assert found is not None
+    assert found[0] == pytest.approx(shift, abs=0.08)
+    assert found[1] > 0.9
+
+
+def test_track_patch_rejects_a_match_that_does_not_match_back() -> None:
+    rng = np.random.default_rng(3)
+    prev = _texture((9, 80), 11)
+    cur = rng.uniform(0, 255, (9, 80)).astype(np.float32)  # unrelated view
+    results = [pt.track_patch(prev, cur, 4, c, 13, 3, c - 12, c + 13) for c in range(20, 60)]
+    # Noise matches somewhere, but the back match rarely lands where it came from.
+    assert sum(r is None for r in results) > len(results) // 3
