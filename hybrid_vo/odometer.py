@@ -84,6 +84,17 @@ class OdometerConfig:
         parallax_correction: subtract from each patch's yaw the parallax that the wheel
             travel and the patch's stereo range predict (:func:`hybrid_vo.patches.parallax_rad`);
             False keeps the thesis' assumption that parallax below ``θ_p/2`` is invisible.
+        balance_sides: take patches alternately from both sides of the direction of travel
+            and give both sides equal weight, so that the parallax of features too far to
+            range cancels (:func:`hybrid_vo.patches.alternate_sides`).
+        parallax_min_disparity_px: patches with less stereo disparity than this are taken
+            as infinitely far by the parallax correction (for cameras whose sub-pixel
+            disparity is too noisy to be worth using).
+        stereo_at_input_resolution: range patches on the stereo pair as it arrives rather
+            than on the downsampled one (``stereo_*`` sizes are in working pixels and
+            scale with it).
+        symmetric_subpixel: average the forward match with a match back from the current
+            frame (:func:`hybrid_vo.patches.track_patch`); False uses the forward parabola.
     """
 
     work_width_px: int = 160
@@ -108,7 +119,9 @@ class OdometerConfig:
     sigma_merge: Literal["thesis", "inverse_variance"] = "thesis"
     parallax_correction: bool = True
     balance_sides: bool = True
+    parallax_min_disparity_px: float = 0.0
     symmetric_subpixel: bool = True
+    stereo_at_input_resolution: bool = True
 
     def __post_init__(self) -> None:
         def positive(name: str) -> None:
@@ -231,6 +244,7 @@ class _Prepared:
     left: Float32Array  # working-resolution planar images
     right: Float32Array
     spherical: Float32Array
+    stereo: tuple[NDArray[np.uint8], NDArray[np.uint8]]  # the pair the range test reads
 
 
 class HybridOdometer:
@@ -361,6 +375,7 @@ class HybridOdometer:
         intr = self.input_intrinsics
         expected = (intr.height_px, intr.width_px)
         images = []
+        full = []
         for side, img in (("left", frame.left), ("right", frame.right)):
             arr: NDArray[Any] = np.asarray(img)
             if arr.shape[:2] != expected or arr.ndim not in (2, 3):
@@ -374,12 +389,19 @@ class HybridOdometer:
                 arr = cv2.cvtColor(arr, cv2.COLOR_BGR2GRAY)
             if arr.dtype != np.uint8:
                 raise FrameError(f"{side} image has dtype {arr.dtype}, expected uint8")
+            full.append(arr)
             w = self.work_intrinsics
             if arr.shape != (w.height_px, w.width_px):
                 arr = cv2.resize(arr, (w.width_px, w.height_px), interpolation=cv2.INTER_AREA)
             images.append(arr.astype(np.float32))
         left, right = images
-        return _Prepared(left=left, right=right, spherical=self.spherical.remap(left))
+        if self.config.stereo_at_input_resolution:
+            stereo = (full[0], full[1])
+        else:
+            stereo = (left.astype(np.uint8), right.astype(np.uint8))
+        return _Prepared(
+            left=left, right=right, spherical=self.spherical.remap(left), stereo=stereo
+        )
 
     def _sampling_columns(self, shift_cols: float) -> tuple[int, int]:
         """Columns [lo, hi) of the previous spherical image to sample from (§2.3.2–2.3.3)."""
@@ -447,6 +469,11 @@ class HybridOdometer:
             picks = pt.alternate_sides(picks, travel_col)
         # Range test (2.3): per-patch stereo in the previous frame's planar pair.
         intr = self.work_intrinsics
+        # Range from the pair as it arrived: at 160 px a 50 m feature has under a pixel of
+        # disparity, and the parabola pulls such disparities toward whole pixels (ranges too
+        # short, parallax over-corrected); matching a few more pixels costs little. The
+        # window keeps half the working window's angular size to stay cheap.
+        st_scale = prev.stereo[0].shape[1] / intr.width_px
         far: list[tuple[int, int, float]] = []  # (row, col, horizontal range m)
         n_sampled = 0
         for r, c in picks:
@@ -455,15 +482,17 @@ class HybridOdometer:
             n_sampled += 1
             u, v = float(sph.map_u[r, c]), float(sph.map_v[r, c])
             depth = pt.stereo_range_m(
-                prev.left,
-                prev.right,
-                u,
-                v,
-                intr.fx_px,
+                prev.stereo[0],
+                prev.stereo[1],
+                (u + 0.5) * st_scale - 0.5,
+                (v + 0.5) * st_scale - 0.5,
+                intr.fx_px * st_scale,
                 self.mounting.baseline_m,
-                cfg.stereo_max_disparity_px,
-                cfg.stereo_half_width_px,
-                cfg.stereo_half_height_px,
+                int(round(cfg.stereo_max_disparity_px * st_scale)),
+                max(cfg.stereo_half_width_px, int(round(cfg.stereo_half_width_px * st_scale / 2))),
+                max(
+                    cfg.stereo_half_height_px, int(round(cfg.stereo_half_height_px * st_scale / 2))
+                ),
                 cfg.stereo_min_ncc,
             )
             ray_scale = math.sqrt(
@@ -478,7 +507,10 @@ class HybridOdometer:
             dist = depth * ray_scale
             if dist >= r_min:  # NaN (unreliable stereo) compares False: dropped
                 phi = sph.phi_o_rad + a * r
-                far.append((r, c, dist * math.cos(phi)))
+                # Too little disparity to range: treat as far rather than correct by noise.
+                disparity_px = intr.fx_px * self.mounting.baseline_m / depth
+                ranged = disparity_px >= cfg.parallax_min_disparity_px
+                far.append((r, c, dist * math.cos(phi) if ranged else math.inf))
         n_far = len(far)
         if n_far < cfg.min_patches:
             return None, FallbackReason.NEAR_FEATURES, (n_sampled, n_far, 0, 0)

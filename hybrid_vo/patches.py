@@ -224,8 +224,8 @@ def track_patch(
 
 
 def stereo_range_m(
-    left: Float32Array,
-    right: Float32Array,
+    left: Float32Array | NDArray[np.uint8],
+    right: Float32Array | NDArray[np.uint8],
     u_px: float,
     v_px: float,
     fx_px: float,

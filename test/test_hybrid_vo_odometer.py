@@ -28,8 +28,10 @@ MOUNT = CameraMounting(pitch_rad=0.03, height_m=1.0, baseline_m=0.12)
 STEP = np.array([0.13, 0.0, 0.0])  # 1.3 m/s at 10 Hz, straight ahead
 
 
-def _two_frames(objects: tuple[NearObject, ...], seed: int = 1) -> list[StereoFrame]:
-    world = World(WorldConfig(seed=seed), objects, INTR, MOUNT)
+def _two_frames(
+    objects: tuple[NearObject, ...], seed: int = 1, intr: CameraIntrinsics = INTR
+) -> list[StereoFrame]:
+    world = World(WorldConfig(seed=seed), objects, intr, MOUNT)
     frames = []
     for i, x in enumerate((0.0, 0.13)):
         left, right = world.render_stereo(np.array([x, 0.0, 0.0]), i)
@@ -62,13 +64,16 @@ def test_open_view_tracks_with_all_patches() -> None:
 
 
 @pytest.mark.parametrize(("range_factor", "kept"), [(0.6, False), (2.0, True)])
-def test_near_features_are_dropped_by_equation_2_3(range_factor, kept) -> None:
-    odo = HybridOdometer(INTR, MOUNT)
+@pytest.mark.parametrize("input_width", [160, 640])
+def test_near_features_are_dropped_by_equation_2_3(range_factor, kept, input_width) -> None:
+    # At 640 px the range comes from the pair as it arrived (stereo_at_input_resolution).
+    intr = INTR.scaled(input_width, input_width * 3 // 4)
+    odo = HybridOdometer(intr, MOUNT)
     dist = range_factor * odo.r_min_m
     # A textured column straight ahead, wide enough to fill the sampling region ±θ_max.
     radius = dist * math.sin(odo.theta_max_rad + 0.08)
     wall = NearObject(dist + radius + 0.13, 0.0, radius, 6.0)
-    _, upd = _run(_two_frames((wall,)), odo)
+    _, upd = _run(_two_frames((wall,), intr=intr), odo)
     assert upd.num_sampled >= 3
     if kept:
         assert upd.num_far == upd.num_sampled
@@ -168,13 +173,18 @@ def test_posts_beside_the_path_do_not_bend_a_straight_drive() -> None:
     )
     drive.world = World(drive.world.config, posts, info.intrinsics, info.mounting)
     frames = list(drive.frames())
+    configs = {
+        "off": OdometerConfig(parallax_correction=False),
+        "on": OdometerConfig(),
+        # Every post has less than 100 px of disparity: all taken as far, nothing corrected.
+        "unranged": OdometerConfig(parallax_min_disparity_px=100.0),
+    }
     final_yaw = {}
-    for correct in (False, True):
-        odo = HybridOdometer(
-            info.intrinsics, info.mounting, OdometerConfig(parallax_correction=correct)
-        )
+    for name, cfg in configs.items():
+        odo = HybridOdometer(info.intrinsics, info.mounting, cfg)
         poses = [odo.process(f, drive.wheel_deltas[i]).pose for i, f in enumerate(frames)]
         assert odo.stats.deferred_fraction < 0.05
-        final_yaw[correct] = abs(poses[-1][2])
-    assert final_yaw[False] > 0.04
-    assert final_yaw[True] < 0.01
+        final_yaw[name] = abs(poses[-1][2])
+    assert final_yaw["off"] > 0.04
+    assert final_yaw["unranged"] > 0.04
+    assert final_yaw["on"] < 0.01
