@@ -186,6 +186,11 @@ class World:
         g = _to_u8_range(ground, 70.0, 190.0)
         self._ground_levels = [g, _blur_wrap(g, 2.0), _blur_wrap(g, 6.0)]
         self._rays = pixel_rays_base(intrinsics, mounting).astype(np.float32)
+        horiz = np.hypot(self._rays[..., 0], self._rays[..., 1])
+        self._bearing_x = (self._rays[..., 0] / horiz).astype(np.float32)
+        self._bearing_y = (self._rays[..., 1] / horiz).astype(np.float32)
+        bearings = np.arctan2(self._rays[..., 1], self._rays[..., 0])
+        self._max_bearing = float(np.max(np.abs(bearings)))
         r_bo = mounting.rotation_base_from_optical()
         self._left_offset = np.array([mounting.forward_m, mounting.left_m, mounting.height_m])
         self._right_offset = self._left_offset + r_bo @ np.array([mounting.baseline_m, 0.0, 0.0])
@@ -238,20 +243,24 @@ class World:
             t_g = np.where(dz < -1e-6, -oz / dz, np.inf)
         hit_g = t_g < depth
         if np.any(hit_g):
-            gx = ((ox + t_g * dx) / cfg.ground_cell_m).astype(np.float32)
-            gy = ((oy + t_g * dy) / cfg.ground_cell_m).astype(np.float32)
-            footprint = t_g * self._rad_per_px / np.maximum(-dz, 0.05) / cfg.ground_cell_m
+            # Texture look-ups for the ground pixels only, as an (N, 1) map per level: the
+            # full-image remap of every level was most of the render time.
+            t_hit = t_g[hit_g]
+            dx_g, dy_g, dz_g = dx[hit_g], dy[hit_g], dz[hit_g]
+            gx = ((ox + t_hit * dx_g) / cfg.ground_cell_m).astype(np.float32)
+            gy = ((oy + t_hit * dy_g) / cfg.ground_cell_m).astype(np.float32)
+            footprint = t_hit * self._rad_per_px / np.maximum(-dz_g, 0.05) / cfg.ground_cell_m
             level = np.where(footprint < 2.0, 0, np.where(footprint < 8.0, 1, 2))
-            ground = np.zeros_like(img)
+            ground = np.zeros(t_hit.shape, dtype=np.float32)
             for i, tex in enumerate(self._ground_levels):
-                sel = hit_g & (level == i)
+                sel = level == i
                 if np.any(sel):
-                    vals = cv2.remap(tex, gx, gy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-                    ground = np.where(sel, vals, ground)
-            img = np.where(hit_g, ground, img).astype(np.float32)
+                    ground[sel] = _remap_points(tex, gx[sel], gy[sel])
+            img = img.copy()
+            img[hit_g] = ground
             depth = np.where(hit_g, t_g, depth)
         for obj in self.objects:
-            img, depth = self._render_object(obj, ox, oy, oz, d, img, depth)
+            img, depth = self._render_object(obj, ox, oy, oz, float(pose[2]), d, img, depth)
         if cfg.pixel_noise > 0:
             img = img + rng.normal(0.0, cfg.pixel_noise, img.shape).astype(np.float32)
         out: ImageU8 = np.clip(np.rint(img), 0, 255).astype(np.uint8)
@@ -263,6 +272,7 @@ class World:
         ox: float,
         oy: float,
         oz: float,
+        yaw: float,
         d: NDArray[np.float32],
         img: NDArray[np.float32],
         depth: FloatArray,
@@ -275,8 +285,16 @@ class World:
         # Cheap cull: only pixels whose ray bearing lies within the object's angular extent.
         to_obj = math.atan2(-py, -px)
         half = math.asin(min(1.0, obj.radius_m / dist)) + 1e-3
-        ang = np.abs(wrap_angle(np.arctan2(dy, dx) - to_obj))
-        cand = ang < half
+        # As a dot product with the rays' fixed horizontal bearings in base_link (the pose only
+        # turns them by its yaw): one multiply-add per pixel instead of atan2 and a wrap.
+        rel = to_obj - yaw
+        if abs(float(wrap_angle(rel))) - half > self._max_bearing:
+            return img, depth  # outside the camera's horizontal field of view
+        cand = (
+            self._bearing_x * np.float32(math.cos(rel))
+            + self._bearing_y * np.float32(math.sin(rel))
+            > np.float32(math.cos(half))
+        )
         if not np.any(cand):
             return img, depth
         rows, cols = np.nonzero(cand)
@@ -309,6 +327,30 @@ class World:
         img[rows, cols] = vals
         depth[rows, cols] = t
         return img, depth
+
+
+def _remap_points(
+    tex: NDArray[np.float32], x: NDArray[np.float32], y: NDArray[np.float32]
+) -> NDArray[np.float32]:
+    """``cv2.remap`` (bilinear, wrapping) of ``tex`` at the points ``(x, y)``, shape ``(N,)``.
+
+    The points go in as rows of 1024 (padded), since remap refuses maps of 32767 rows or more.
+    """
+    n = x.size
+    width = 1024
+    rows = -(-n // width)
+    mx = np.zeros(rows * width, dtype=np.float32)
+    my = np.zeros(rows * width, dtype=np.float32)
+    mx[:n], my[:n] = x, y
+    out = cv2.remap(
+        tex,
+        mx.reshape(rows, width),
+        my.reshape(rows, width),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_WRAP,
+    )
+    vals: NDArray[np.float32] = np.asarray(out, dtype=np.float32).reshape(-1)[:n]
+    return vals
 
 
 def _bilinear_wrap(
