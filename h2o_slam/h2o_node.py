@@ -104,11 +104,15 @@ PARAMETERS: list[tuple[str, Any, str, tuple[float, float] | None]] = [
     ("map_file", "", "g2o file for the save service and for load_map_on_start.", None),
     ("load_map_on_start", False, "Continue the graph saved in map_file.", None),
     ("input_queue_depth", 200, "Subscription queue depth of each input.", (1, 100_000)),
+    ("idle_budget_ms", 10.0, "Solver time of an idle step, for edges that did not fit into "
+     "the input callbacks' budget; 0 disables (run-time).", (0.0, 1000.0)),
+    ("idle_period", 0.05, "Seconds between idle steps; they run only while edges wait.",
+     (0.001, 10.0)),
 ]
 
 #: Parameters whose changes take effect while running (the rest need a restart).
 RUNTIME = {"budget_ms", "d_max", "keyframe_distance", "keyframe_angle", "keyframe_period",
-           "loop_gate_chi2", "publish_tf"}
+           "loop_gate_chi2", "publish_tf", "idle_budget_ms"}
 
 
 def _descriptor(name: str, default: Any, text: str,
@@ -144,6 +148,7 @@ class H2ONode(Node):
         self.sink: Callable[[str, Any], None] | None = None
         self.paused = False
         self.times = CallbackTimes()
+        self.idle_times = CallbackTimes()
         self.rejected: Counter[str] = Counter()
         self._last_gps_ns: int | None = None
         self._last_stamp_ns = 0
@@ -229,6 +234,7 @@ class H2ONode(Node):
         self.create_timer(float(self.p("graph_publish_period")), self.publish_graph)
         self.create_timer(float(self.p("transform_publish_period")), self.publish_map_to_odom)
         self.create_timer(float(self.p("diagnostics_period")), self.publish_diagnostics)
+        self.create_timer(float(self.p("idle_period")), self.idle_step)
 
     # -- parameters at run time -----------------------------------------------------------------
 
@@ -276,6 +282,19 @@ class H2ONode(Node):
         else:
             left_s = 1e-3 * budget_ms - (time.perf_counter() - start)
             self.mapper.step(max(left_s, 0.0))
+        self._graph_dirty = True
+
+    def idle_step(self) -> None:
+        """Work on edges the input callbacks could not fit (e.g. a GPS edge whose path is
+        longer than ``budget_ms`` allows), in time the node would otherwise sit idle. It
+        delays the next input by at most ``idle_budget_ms`` and never runs when nothing
+        waits, so it costs nothing on a graph the callbacks keep up with."""
+        budget_ms = float(self.p("idle_budget_ms"))
+        if self.paused or budget_ms == 0.0 or not self.mapper.h2o.pending:
+            return
+        start = time.perf_counter()
+        self.mapper.step(1e-3 * budget_ms)
+        self.idle_times.add(1e3 * (time.perf_counter() - start), budget_ms)
         self._graph_dirty = True
 
     def on_odom(self, msg: Any) -> None:
@@ -399,7 +418,9 @@ class H2ONode(Node):
             "budget_ms": budget, **summary,
             "nodes": self.mapper.num_nodes, "edges": graph.num_edges,
             "chi2": float(np.sum(edge_chi2(graph))) if graph.num_edges else 0.0,
-            "deferred_edges": self.mapper.last_report.deferred,
+            "deferred_edges": len(self.mapper.h2o.pending),
+            "idle_steps": self.idle_times.count,
+            "idle_max_ms": self.idle_times.max_ms,
             "paused": self.paused,
             "tf_available": self._tf_cls is not None,
             "gps_datum": "unset" if self._datum is None else
@@ -449,6 +470,7 @@ class H2ONode(Node):
         self._last_gps_ns = None
         self.rejected.clear()
         self.times = CallbackTimes()
+        self.idle_times = CallbackTimes()
         self._graph_dirty = True
         response.success, response.message = True, "graph cleared"
         return response

@@ -296,6 +296,8 @@ class Replay:
                            lambda _: h2o.publish_map_to_odom()),
                   Periodic(float(h2o.p("diagnostics_period")), self._publish_diagnostics),
                   Periodic(self.options.graph_period_s, self._sample_graph)]
+        if self.options.budget_ms is not None:  # with no budget nothing is ever deferred
+            timers.append(Periodic(float(h2o.p("idle_period")), lambda _: h2o.idle_step()))
         progress = Progress((reader.end_ns - reader.start_ns) / NS, "replay") \
             if self.options.progress else None
         for item in reader.messages():

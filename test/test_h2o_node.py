@@ -21,6 +21,7 @@ from std_srvs.srv import SetBool, Trigger
 
 import msg_adapters as ma
 from h2o_slam.errors import InputError
+from h2o_slam.graph import edge_chi2
 from h2o_slam.h2o_node import H2ONode
 from hybrid_vo import world
 from hybrid_vo.world_messages import DEFAULT_START_NS, StreamMessage, drive_messages
@@ -297,3 +298,25 @@ def test_config_file_lists_every_parameter_with_its_default() -> None:
 def test_bad_parameters_end_the_node_with_one_line(harness: Harness) -> None:
     with pytest.raises(InputError, match="datum"):
         harness.add(H2ONode, parameter_overrides=[Parameter("datum", value=[1.0, 2.0])])
+
+
+def test_idle_steps_drain_edges_the_callbacks_could_not_fit(
+        harness: Harness, loop_drive: world.Drive) -> None:
+    # A budget so small that loop closures cannot be relaxed inside the input callbacks.
+    node = harness.add(H2ONode, parameter_overrides=[
+        Parameter("budget_ms", value=0.1), Parameter("idle_budget_ms", value=0.0)])
+    for m in stream(loop_drive, gps=False, loops=True):
+        (node.on_odom if m.topic == "/wheel/odom" else node.on_loop_closure)(m.msg)
+    assert node.mapper.h2o.pending, "nothing was deferred: the test proves nothing"
+    before = float(np.sum(edge_chi2(node.mapper.graph())))
+    node.idle_step()
+    assert node.idle_times.count == 0  # disabled by its parameter
+    node.set_parameters([Parameter("idle_budget_ms", value=50.0)])
+    for _ in range(200):
+        node.idle_step()
+        if not node.mapper.h2o.pending:
+            break
+    assert not node.mapper.h2o.pending
+    assert node.idle_times.count > 0
+    # The deferred loop closures were relaxed: the graph's energy fell.
+    assert float(np.sum(edge_chi2(node.mapper.graph()))) < 0.9 * before
