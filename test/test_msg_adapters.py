@@ -438,3 +438,17 @@ def test_importing_msg_adapters_loads_no_rclpy_nor_messages() -> None:
         [sys.executable, "-c", probe], cwd=repo, capture_output=True, text=True, check=True
     )
     assert out.stdout.strip() == ""
+
+
+@given(st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4).filter(
+    lambda q: float(np.linalg.norm(q)) > 0.1))
+def test_scalar_quaternion_path_equals_the_geometry_module(q: list[float]) -> None:
+    # The adapter converts one quaternion with plain floats for speed; it must agree with
+    # the batched conversion the cores use.
+    from h2o_slam.geometry import quat_to_matrix
+    from msg_adapters.rotations import quaternion_to_matrix
+
+    unit = np.asarray(q) / np.linalg.norm(q)
+    np.testing.assert_allclose(quaternion_to_matrix(unit), quat_to_matrix(unit), atol=1e-14)
+    np.testing.assert_allclose(quaternion_to_matrix(q, norm_tol=None), quat_to_matrix(unit),
+                               atol=1e-14)
