@@ -452,3 +452,18 @@ def test_scalar_quaternion_path_equals_the_geometry_module(q: list[float]) -> No
     np.testing.assert_allclose(quaternion_to_matrix(unit), quat_to_matrix(unit), atol=1e-14)
     np.testing.assert_allclose(quaternion_to_matrix(q, norm_tol=None), quat_to_matrix(unit),
                                atol=1e-14)
+
+
+@given(st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4).filter(
+    lambda q: float(np.linalg.norm(q)) > 0.1))
+def test_scalar_matrix_to_quaternion_equals_the_geometry_module(q: list[float]) -> None:
+    from h2o_slam.geometry import matrix_to_quat, quat_to_matrix
+    from msg_adapters.rotations import matrix_to_quaternion
+
+    R = quat_to_matrix(np.asarray(q) / np.linalg.norm(q))
+    got = np.array(matrix_to_quaternion(R))
+    want = matrix_to_quat(R)
+    assert got[3] >= 0.0
+    # q and −q are one rotation; at w = 0 either sign is right.
+    assert min(np.abs(got - want).max(), np.abs(got + want).max()) < 1e-12
+    np.testing.assert_allclose(quat_to_matrix(got), R, atol=1e-12)
