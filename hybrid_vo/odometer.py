@@ -93,6 +93,9 @@ class OdometerConfig:
         stereo_at_input_resolution: range patches on the stereo pair as it arrives rather
             than on the downsampled one (``stereo_*`` sizes are in working pixels and
             scale with it).
+        match_blur_px: σ (spherical pixels) of a Gaussian blur of the spherical image before
+            corners and NCC; widens the NCC peak so the sub-pixel parabola is not pulled
+            toward whole pixels. 0 matches on the image as remapped (the thesis).
         symmetric_subpixel: average the forward match with a match back from the current
             frame (:func:`hybrid_vo.patches.track_patch`); False uses the forward parabola.
     """
@@ -122,6 +125,7 @@ class OdometerConfig:
     parallax_min_disparity_px: float = 0.0
     symmetric_subpixel: bool = True
     stereo_at_input_resolution: bool = True
+    match_blur_px: float = 1.0
 
     def __post_init__(self) -> None:
         def positive(name: str) -> None:
@@ -161,6 +165,8 @@ class OdometerConfig:
             value = getattr(self, name)
             if not -1.0 < value < 1.0:
                 raise ConfigError(f"{name} must lie in (-1, 1), got {value!r}")
+        if not (math.isfinite(self.match_blur_px) and self.match_blur_px >= 0):
+            raise ConfigError(f"match_blur_px must be finite and >= 0, got {self.match_blur_px!r}")
         if self.harris_min_response < 0:
             raise ConfigError(
                 f"harris_min_response must be >= 0, got {self.harris_min_response!r}"
@@ -241,8 +247,6 @@ class OdometerStats:
 
 @dataclass(frozen=True)
 class _Prepared:
-    left: Float32Array  # working-resolution planar images
-    right: Float32Array
     spherical: Float32Array
     stereo: tuple[NDArray[np.uint8], NDArray[np.uint8]]  # the pair the range test reads
 
@@ -374,8 +378,7 @@ class HybridOdometer:
     def _prepare(self, frame: StereoFrame) -> _Prepared:
         intr = self.input_intrinsics
         expected = (intr.height_px, intr.width_px)
-        images = []
-        full = []
+        full: list[NDArray[np.uint8]] = []
         for side, img in (("left", frame.left), ("right", frame.right)):
             arr: NDArray[Any] = np.asarray(img)
             if arr.shape[:2] != expected or arr.ndim not in (2, 3):
@@ -390,18 +393,31 @@ class HybridOdometer:
             if arr.dtype != np.uint8:
                 raise FrameError(f"{side} image has dtype {arr.dtype}, expected uint8")
             full.append(arr)
-            w = self.work_intrinsics
-            if arr.shape != (w.height_px, w.width_px):
-                arr = cv2.resize(arr, (w.width_px, w.height_px), interpolation=cv2.INTER_AREA)
-            images.append(arr.astype(np.float32))
-        left, right = images
+        w = self.work_intrinsics
+        work_shape = (w.height_px, w.width_px)
+
+        def work(arr: NDArray[np.uint8]) -> NDArray[np.uint8]:
+            if arr.shape == work_shape:
+                return arr
+            out = cv2.resize(arr, (w.width_px, w.height_px), interpolation=cv2.INTER_AREA)
+            return np.asarray(out, dtype=np.uint8)
+
+        left = work(full[0])
+        # Ranged at input resolution, the right image is never needed small: skip its resize.
         if self.config.stereo_at_input_resolution:
             stereo = (full[0], full[1])
         else:
-            stereo = (left.astype(np.uint8), right.astype(np.uint8))
-        return _Prepared(
-            left=left, right=right, spherical=self.spherical.remap(left), stereo=stereo
-        )
+            stereo = (left, work(full[1]))
+        spherical = self.spherical.remap(left)
+        if self.config.match_blur_px > 0:
+            # The parabola through an NCC peak pulls a shift toward the nearest whole pixel
+            # the more, the narrower the peak; a turn at a steady rate keeps the same
+            # fraction frame after frame, so that pull adds up (0.04 px per frame on the loop
+            # drive's turns at 640×480 input). Widening the peak shrinks it.
+            spherical = np.asarray(
+                cv2.GaussianBlur(spherical, (0, 0), self.config.match_blur_px), np.float32
+            )
+        return _Prepared(spherical=spherical, stereo=stereo)
 
     def _sampling_columns(self, shift_cols: float) -> tuple[int, int]:
         """Columns [lo, hi) of the previous spherical image to sample from (§2.3.2–2.3.3)."""

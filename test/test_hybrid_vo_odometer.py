@@ -136,6 +136,7 @@ def test_hallucinated_turns_barely_move_the_hybrid_heading() -> None:
         ({"frame_rate_hz": math.nan}, "frame_rate_hz"),
         ({"sigma_merge": "mean"}, "sigma_merge"),
         ({"work_width_px": 16}, "work_width_px"),
+        ({"match_blur_px": -1.0}, "match_blur_px"),
     ],
 )
 def test_bad_config_raises(kwargs, match) -> None:
@@ -188,3 +189,4 @@ def test_posts_beside_the_path_do_not_bend_a_straight_drive() -> None:
     assert final_yaw["off"] > 0.04
     assert final_yaw["unranged"] > 0.04
     assert final_yaw["on"] < 0.01
+
