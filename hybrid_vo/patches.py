@@ -93,7 +93,7 @@ def sample_patches(
     scale = float(np.var(strip)) ** 2 + 1e-6
     picks: list[tuple[int, int]] = []
     for _ in range(num_patches):
-        idx = int(np.argmax(resp))
+        idx = int(resp.argmax())
         r, c = divmod(idx, resp.shape[1])
         if resp[r, c] / scale <= min_response:
             break
@@ -154,9 +154,10 @@ def ncc_search(
     if window.shape[0] < template.shape[0] or window.shape[1] < template.shape[1]:
         return None
     res = cv2.matchTemplate(window, template, cv2.TM_CCOEFF_NORMED)
-    if not np.all(np.isfinite(res)):
+    # One reduction instead of a per-pixel test: a NaN or inf anywhere makes the sum one.
+    if not math.isfinite(float(res.sum())):
         res = np.nan_to_num(res, nan=-1.0, posinf=-1.0, neginf=-1.0)
-    r, c = divmod(int(np.argmax(res)), res.shape[1])
+    r, c = divmod(int(res.argmax()), res.shape[1])
     if res.shape[1] < 3 or c == 0 or c == res.shape[1] - 1:
         return None
     peak = float(res[r, c])
@@ -252,9 +253,9 @@ def stereo_range_m(
     lo = max(0, ui - half_w - max_disparity_px)
     strip = right[vi - half_h : vi + half_h + 1, lo : ui + half_w + 1]
     res = cv2.matchTemplate(strip, tmpl, cv2.TM_CCOEFF_NORMED)[0]
-    if not np.all(np.isfinite(res)):
+    if not math.isfinite(float(res.sum())):
         return math.nan
-    c = int(np.argmax(res))
+    c = int(res.argmax())
     if res[c] < min_ncc:
         return math.nan
     disparity = float((ui - half_w) - (lo + c))
