@@ -145,6 +145,18 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     _odometer("fallback_yaw_sigma_rad", "yaw sigma of a frame that uses wheel odometry, rad",
               1e-6, 1.0),
     _odometer("sigma_merge", "how patch yaw sigmas combine: thesis or inverse_variance"),
+    _odometer("parallax_correction", "remove from each patch the parallax predicted from "
+              "the wheel travel and its stereo range (beyond the thesis)"),
+    _odometer("balance_sides", "take patches from both sides of the direction of travel, "
+              "equally weighted (beyond the thesis)"),
+    _odometer("parallax_min_disparity_px", "patches with less disparity are taken as "
+              "infinitely far, px", 0.0, 100.0),
+    _odometer("symmetric_subpixel", "average the forward match with a match back from the "
+              "current frame (beyond the thesis)"),
+    _odometer("stereo_at_input_resolution", "range patches on the stereo pair as it "
+              "arrives, not the downsampled one"),
+    _odometer("match_blur_px", "Gaussian blur (sigma, spherical px) before corners and "
+              "NCC; 0 disables", 0.0, 10.0),
 )
 
 
