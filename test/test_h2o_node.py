@@ -28,7 +28,7 @@ from hybrid_vo.world_messages import DEFAULT_START_NS, StreamMessage, drive_mess
 
 ROLES = {"/wheel/odom": ("odom", Odometry), "/gps/fix": ("gps/fix", NavSatFix),
          "/loop_closure": ("loop_closure", Odometry)}
-DATUM = [37.4275, -122.1697, 30.0]  # where hybrid_vo.world puts its ENU origin
+DATUM = list(world.GPS_DATUM)  # where the simulated world puts its ENU origin
 
 
 @pytest.fixture(scope="module")

@@ -139,3 +139,19 @@ def test_objects_keep_clear_of_the_path() -> None:
 def test_bad_world_config_raises(make, match) -> None:
     with pytest.raises(ConfigError, match=match):
         make()
+
+
+def test_gps_fixes_convert_back_to_their_enu_exactly() -> None:
+    # The fixes' latitude/longitude are exact WGS-84 images of their ENU positions about
+    # GPS_DATUM, as the node converts them back (msg_adapters.gps).
+    from hybrid_vo import world
+    from msg_adapters.gps import Datum
+
+    drive = world.make_drive(world.scenario("straight", seed=1))
+    datum = Datum(*world.GPS_DATUM)
+    good = [f for f in drive.gps if f.status == world.STATUS_FIX]
+    enu = datum.to_enu(np.array([f.latitude_deg for f in good]),
+                       np.array([f.longitude_deg for f in good]),
+                       np.array([f.altitude_m for f in good]))
+    want = np.array([[f.east_m, f.north_m, f.up_m] for f in good])
+    np.testing.assert_allclose(enu, want, atol=1e-6)

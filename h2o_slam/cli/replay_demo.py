@@ -32,7 +32,7 @@ PROG = "h2o-demo"
 
 #: Where hybrid_vo.world puts the origin of its ENU frame (lat, lon, alt): the demo's
 #: surveyed datum, so that the map frame and the ground truth share their origin.
-WORLD_DATUM = [37.4275, -122.1697, 30.0]
+WORLD_DATUM = list(world.GPS_DATUM)
 
 
 def demo_drive(seed: int, laps: int) -> world.DriveConfig:
