@@ -90,7 +90,9 @@ def sample_patches(
     resp[:hh, :] = 0.0
     resp[rows - hh :, :] = 0.0
     # Harris response scales with intensity^4; normalise so the threshold is contrast-free.
-    scale = float(np.var(strip)) ** 2 + 1e-6
+    # cv2's mean/std is ~10x cheaper than np.var on a strip this size (per frame, it shows).
+    std = float(cv2.meanStdDev(strip)[1][0, 0])
+    scale = (std * std) ** 2 + 1e-6
     picks: list[tuple[int, int]] = []
     for _ in range(num_patches):
         idx = int(resp.argmax())
