@@ -35,6 +35,7 @@ import vo_kitti  # noqa: E402
 from results_md import command, replace_section  # noqa: E402
 from vo_full import FullStereoVO  # noqa: E402
 
+from h2o_slam.replay_outputs import ate_m  # noqa: E402
 from hybrid_vo.odometer import HybridOdometer  # noqa: E402
 from hybrid_vo.world import integrate, make_drive, scenario, wrap_angle  # noqa: E402
 
@@ -48,18 +49,6 @@ KITTI_NOTE = (
     "the car did not make. d of (2.3) from a 15 m/s top speed (the car drives ~12 m/s). "
     "Errors are against KITTI's ground-truth poses."
 )
-
-
-def ate_m(est: np.ndarray, truth: np.ndarray) -> float:
-    """Position RMSE after the best planar rigid alignment of ``est`` onto ``truth``."""
-    a, b = est[:, :2], truth[:, :2]
-    ma, mb = a.mean(0), b.mean(0)
-    h = (a - ma).T @ (b - mb)
-    u, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    r = vt.T @ np.diag([1.0, d]) @ u.T
-    aligned = (r @ (a - ma).T).T + mb
-    return float(np.sqrt(np.mean(np.sum((aligned - b) ** 2, axis=1))))
 
 
 def metrics(est: np.ndarray, truth: np.ndarray) -> dict[str, float]:
