@@ -15,6 +15,7 @@ stamps, never the wall clock.
 
 from __future__ import annotations
 
+import gc
 import importlib
 import re
 import sys
@@ -159,6 +160,17 @@ class H2ONode(Node):
         self._make_interfaces()
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
+
+    def destroy_node(self) -> None:
+        """Destroy the node and let the garbage collector reclaim it.
+
+        The solver freezes the collector after each step (``OnlineConfig.freeze_gc``), which
+        would keep this node's reference cycles, and with them its DDS participant, alive
+        for the rest of the process.
+        """
+        super().destroy_node()
+        gc.unfreeze()
+        gc.collect()
 
     # -- set-up -------------------------------------------------------------------------------
 

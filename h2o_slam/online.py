@@ -58,7 +58,9 @@ class OnlineConfig:
         freeze_gc: after each step, move every object alive into the garbage collector's
             permanent generation (``gc.freeze``), so that Python's full collections, which
             scan every tracked object, stay small. Process-wide; objects are still freed by
-            reference counting, only reference cycles among them are never collected.
+            reference counting and young cycles are collected before each freeze, but cycles
+            among objects frozen earlier wait for ``gc.unfreeze()`` (``H2ONode.destroy_node``
+            calls it).
     """
 
     d_max: int | None = None
@@ -464,6 +466,9 @@ class OnlineH2O:
             # Python's full collections scan every live object: on a graph of a few
             # thousand poses that is a 20–40 ms pause at an unpredictable step, which no
             # budget can absorb. Frozen objects are still freed by reference counting.
+            # Young cycles are collected first, or every step would freeze some garbage
+            # for good; the young generations only hold what this step allocated.
+            gc.collect(1)
             gc.freeze()
         end = self._clock()
         report.elapsed_s = end - start

@@ -447,30 +447,40 @@ def format_summary(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def publish_realtime(bag: Path, topics: dict[str, str | None], rate: float) -> int:
-    """Publish the mapped topics at the recorded pace (``rate`` × real time)."""
+def publish_realtime(bag: Path, topics: dict[str, str | None], rate: float,
+                     delay_s: float = 1.0) -> int:
+    """Publish the mapped topics at the recorded pace (``rate`` × real time).
+
+    Every publisher exists ``delay_s`` before the first message, so that subscribers
+    already running have matched them (DDS drops what is published before a match).
+    """
     if not rate > 0.0:
         raise ReplayError("--rate", f"must be > 0, got {rate}")
+    if not delay_s >= 0.0:
+        raise ReplayError("--delay", f"must be >= 0, got {delay_s}")
     store = jazzy_typestore()
-    rclpy.init()
-    node = rclpy.create_node("h2o_replay")
-    publishers: dict[str, Any] = {}
+    context = Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("h2o_replay", context=context)
     try:
         with BagReader(bag, topics, required=()) as reader:
+            publishers = {
+                topic: node.create_publisher(_message_class(reader.stats.topics[topic]), topic,
+                                             100)
+                for topic in reader.stats.roles.values()}
+            time.sleep(delay_s)
             wall0, bag0 = time.monotonic(), None
             for item in reader.messages():
                 bag0 = item.stamp_ns if bag0 is None else bag0
                 delay = (item.stamp_ns - bag0) * 1e-9 / rate - (time.monotonic() - wall0)
                 if delay > 0:
                     time.sleep(delay)
-                cls = _message_class(item.type_name)
-                if item.topic not in publishers:
-                    publishers[item.topic] = node.create_publisher(cls, item.topic, 100)
+                publisher = publishers[item.topic]
                 raw = store.serialize_cdr(item.msg, item.type_name)
-                publishers[item.topic].publish(deserialize_message(bytes(raw), cls))
+                publisher.publish(deserialize_message(bytes(raw), publisher.msg_type))
     finally:
         node.destroy_node()
-        rclpy.try_shutdown()
+        rclpy.try_shutdown(context=context)
     return 0
 
 

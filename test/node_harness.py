@@ -7,6 +7,7 @@ time on this machine (same DDS domain, loopback profile) never see each other's 
 
 from __future__ import annotations
 
+import gc
 import time
 import uuid
 from collections import defaultdict
@@ -103,8 +104,14 @@ class Harness:
         return future.result()
 
     def close(self) -> None:
-        """Destroy everything and shut the context down."""
+        """Destroy everything, shut the context down and free its DDS participant."""
         self.executor.shutdown()
         for node in list(self.executor.get_nodes()) + [self.tester]:
             node.destroy_node()
         rclpy.shutdown(context=self.context)
+        # The participant goes with the context object, which nodes' reference cycles keep
+        # alive until a collection (and the solver freezes the collector): collect now, or
+        # every test leaves one behind.
+        del self.executor, self.tester, self.context, self._publishers
+        gc.unfreeze()
+        gc.collect()

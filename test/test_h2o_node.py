@@ -3,7 +3,9 @@ node, one SingleThreadedExecutor spins both, and the tests assert on what it pub
 
 from __future__ import annotations
 
+import gc
 import math
+import weakref
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -207,6 +209,20 @@ def test_budget_changes_at_run_time(harness: Harness, slip_drive: world.Drive) -
     result = harness.call(SetParameters, "h2o_node/set_parameters", request)
     assert not result.results[0].successful
     assert "read-only" in result.results[0].reason
+
+
+def test_a_destroyed_node_is_freed_although_its_solver_froze_the_collector(
+        harness: Harness, slip_drive: world.Drive) -> None:
+    """Steps call ``gc.freeze``; a node unloaded at run time (a restart, a component
+    container) must not stay in memory, with its DDS endpoints, for the rest of the process."""
+    node, _ = start(harness, budget_ms=5.0)
+    play(harness, stream(slip_drive, gps=False, loops=False)[:40], node)
+    assert node.mapper.num_nodes > 1 and gc.get_freeze_count() > 0
+    ref = weakref.ref(node)
+    harness.remove(node)
+    del node
+    gc.collect()
+    assert ref() is None
 
 
 def _odometry(stamp_ns: int, x: float) -> Odometry:

@@ -3,7 +3,7 @@
     h2o-replay BAG --output DIR [--topics FILE] [--topic ROLE=TOPIC ...]
                [--odometry auto|hybrid|wheel] [--budget-ms X] [--no-gps]
                [--storage mcap|sqlite3] [--graph-period S] [--quiet]
-    h2o-replay BAG --realtime [--rate R] [--topics FILE] [--topic ROLE=TOPIC ...]
+    h2o-replay BAG --realtime [--rate R] [--delay S] [--topics FILE] [--topic ROLE=TOPIC ...]
 
 The work is :mod:`h2o_slam.replay`; this module parses arguments, prints, and maps errors to
 one line and a non-zero exit code (1: the bag or the output, 2: the command line).
@@ -50,6 +50,9 @@ def parser() -> argparse.ArgumentParser:
                    help="publish the bag's mapped topics on the ROS graph at the recorded "
                         "pace instead (for external nodes); no outputs are written")
     p.add_argument("--rate", type=float, default=1.0, help="--realtime speed factor")
+    p.add_argument("--delay", type=float, default=1.0,
+                   help="--realtime: seconds between creating the publishers and the first "
+                        "message, for subscribers to match them")
     return p
 
 
@@ -59,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         topics = topic_map(args.topics, args.topic)
         if args.realtime:
-            return publish_realtime(args.bag, topics, args.rate)
+            return publish_realtime(args.bag, topics, args.rate, args.delay)
         if args.output is None:
             parser().error("--output is required (or --realtime)")
         options = ReplayOptions(
