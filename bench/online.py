@@ -112,6 +112,8 @@ class H2OOnlineRun:
     budget_ms: float
     status: str  # "ok", "timeout", or "failed (exit N): <last stderr line>"
     times: CallbackTimes = field(default_factory=CallbackTimes)
+    #: the same callbacks without the spare-time revisits of old edges (``required_ms``)
+    required: CallbackTimes = field(default_factory=CallbackTimes)
     chi2_online: float = float("nan")  # chi2_per_pass[0] of the report: after the online pass
     chi2_final: float = float("nan")  # our evaluator on the output file (after the passes)
     chi2_final_reported: float = float("nan")
@@ -210,6 +212,7 @@ def run_h2o_online(graph: PoseGraph, path: Path, out_dir: Path, budget_ms: float
     per_pass = [float(x) for x in rep["chi2_per_pass"]]
     return H2OOnlineRun(
         budget_ms, "ok", times=CallbackTimes(np.asarray(tr["callback_ms"], dtype=float)),
+        required=CallbackTimes(np.asarray(tr["required_ms"], dtype=float)),
         chi2_online=per_pass[0] if per_pass else float("nan"),
         chi2_final=chi2(graph, solved.R, solved.t),
         chi2_final_reported=float(rep["chi2_final"]), chi2_per_pass=per_pass,
@@ -499,36 +502,42 @@ def _overrun_cell(times: CallbackTimes, budget_ms: float) -> str:
 
 @dataclass
 class Targets:
-    """The four targets of one H₂O run (``None``: cannot be judged)."""
+    """The targets of one H₂O run (``None``: cannot be judged)."""
 
     p99: bool | None
     max: bool | None
     chi2: bool | None
     vs_isam2: bool | None
+    #: the same comparison without the spare-time revisits, which fill any budget by design
+    required_vs_isam2: bool | None = None
 
 
 def targets(r: GraphOnline, run: H2OOnlineRun) -> Targets:
     """Judge ``run`` against the targets of issue 3."""
     if run.status != "ok":
-        return Targets(False, False, False, False)
+        return Targets(False, False, False, False, False)
     b = run.budget_ms
     chi2_ok = (run.chi2_final <= CHI2_TARGET * r.ref.optimum) if np.isfinite(
         r.ref.optimum) else None
-    vs = None  # not judged when iSAM2 did not run or did not finish the graph
+    vs = required_vs = None  # not judged when iSAM2 did not run or did not finish the graph
     if r.isam2 is not None and r.isam2.status == "ok":
         vs = run.times.max < r.isam2.times.max
-    return Targets(run.times.p99 <= b, run.times.max <= MAX_TARGET * b, chi2_ok, vs)
+        required_vs = run.required.max < r.isam2.times.max
+    return Targets(run.times.p99 <= b, run.times.max <= MAX_TARGET * b, chi2_ok, vs,
+                   required_vs)
 
 
 def _h2o_row(r: GraphOnline, run: H2OOnlineRun) -> list[str]:
     opt = r.ref.optimum
     if run.status != "ok":
-        return [r.name, run.label] + [_short(run.status)] * 6 + [_yes(False)] * 4
+        return [r.name, run.label] + [_short(run.status)] * 7 + [_yes(False)] * 5
     t = targets(r, run)
     return [r.name, run.label, _num(run.times.mean, ".3g"), _num(run.times.p99, ".3g"),
-            _num(run.times.max, ".3g"), _overrun_cell(run.times, run.budget_ms),
+            _num(run.times.max, ".3g"), _num(run.required.max, ".3g"),
+            _overrun_cell(run.times, run.budget_ms),
             _num(run.chi2_online / opt, ".4g"), _num(run.chi2_final / opt, ".4f"),
-            _yes(t.p99), _yes(t.max), _yes(t.chi2), _vs_cell(r, t.vs_isam2)]
+            _yes(t.p99), _yes(t.max), _yes(t.chi2), _vs_cell(r, t.vs_isam2),
+            _vs_cell(r, t.required_vs_isam2)]
 
 
 def _vs_cell(r: GraphOnline, ok: bool | None) -> str:
@@ -544,7 +553,8 @@ def _isam2_row(r: GraphOnline, budgets_ms: list[float]) -> list[str]:
     chi2_cell = (_num(s.chi2_final / r.ref.optimum, ".4g") if s.status == "ok"
                  else _short(s.status))
     return [r.name, "iSAM2", _num(s.times.mean, ".3g"), _num(s.times.p99, ".3g"),
-            _num(s.times.max, ".3g"), over or "—", chi2_cell, "—", "—", "—", "—", "—"]
+            _num(s.times.max, ".3g"), "—", over or "—", chi2_cell, "—", "—", "—", "—", "—",
+            "—"]
 
 
 def _table(head: list[str], rows: list[list[str]]) -> list[str]:
@@ -574,10 +584,11 @@ def format_tables(results: list[GraphOnline], budgets_ms: list[float]) -> str:
             rows.append(_isam2_row(r, budgets_ms))
     lines += ["", "Per graph and solver (times per callback in ms; χ² as a ratio to the "
               "optimum above):", ""]
-    lines += _table(["graph", "solver", "mean", "p99", "max", "overruns of the budget",
-                     "χ² online / opt", f"χ² +{PASSES} passes / opt", "p99 ≤ budget",
-                     f"max ≤ {MAX_TARGET:g}×budget", f"χ² +{PASSES} ≤ {CHI2_TARGET:g}×opt",
-                     "max < iSAM2 max"], rows)
+    lines += _table(["graph", "solver", "mean", "p99", "max", "max without revisits",
+                     "overruns of the budget", "χ² online / opt", f"χ² +{PASSES} passes / opt",
+                     "p99 ≤ budget", f"max ≤ {MAX_TARGET:g}×budget",
+                     f"χ² +{PASSES} ≤ {CHI2_TARGET:g}×opt", "max < iSAM2 max",
+                     "max without revisits < iSAM2 max"], rows)
     lines += ["", _summary(results)]
 
     check_rows = []
@@ -618,7 +629,8 @@ def _summary(results: list[GraphOnline]) -> str:
     parts = []
     for name, attr in (("p99 ≤ budget", "p99"), (f"max ≤ {MAX_TARGET:g}×budget", "max"),
                        (f"χ² after {PASSES} passes ≤ {CHI2_TARGET:g}×optimum", "chi2"),
-                       ("max < iSAM2's max", "vs_isam2")):
+                       ("max < iSAM2's max", "vs_isam2"),
+                       ("max without revisits < iSAM2's max", "required_vs_isam2")):
         vals = [getattr(t, attr) for t in judged if getattr(t, attr) is not None]
         parts.append(f"{name}: {sum(vals)}/{len(vals)}")
     return "Targets met by the H₂O runs — " + "; ".join(parts) + "."
@@ -635,7 +647,9 @@ Notes:
   from them (p99: numpy's linear interpolation) and cross-checked against the report in the
   checks table. "χ² online" is `chi2_per_pass[0]` of the report (after the online pass);
   "χ² +{PASSES} passes" is our evaluator on the output file. An overrun is a callback longer
-  than the budget.
+  than the budget. "max without revisits" is the largest `required_ms` of the trace: the
+  callback less the time spent revisiting old edges, which H₂O does with whatever budget is
+  left (3.3.13), so it is the work the callback could not have skipped.
 - GTSAM iSAM2 (same process as this script): `ISAM2(ISAM2Params())` with GTSAM's defaults
   (Gauss–Newton, relinearizeThreshold 0.1, relinearizeSkip 10, wildfire 0.001, Cholesky);
   BetweenFactorPose2/Pose3 built by bench/solvers.py from `h2o_slam.g2o.read_g2o` (same

@@ -96,6 +96,8 @@ class StepReport:
         elapsed_s: wall time of the step.
         relaxed: new edges relaxed.
         revisited: old edges relaxed with the time left over.
+        revisit_s: wall time spent on those (optional work: the step fills its budget with
+            it, and would be just as correct without).
         deferred: new edges still waiting (they did not fit).
         undone: updates the guard undid (each retry counts).
         smallest_d_max: the smallest number of nodes solved for in an update (0 if none).
@@ -106,6 +108,7 @@ class StepReport:
     elapsed_s: float = 0.0
     relaxed: int = 0
     revisited: int = 0
+    revisit_s: float = 0.0
     deferred: int = 0
     undone: int = 0
     smallest_d_max: int = 0
@@ -461,7 +464,9 @@ class OnlineH2O:
             # for good, since only updates that run produce new samples.
             self.cost.spread = max(1.1, 0.9 * self.cost.spread)
         if budget_s is not None and not self.pending:
+            revisit_start = self._clock()
             self._revisit(deadline, report)
+            report.revisit_s = self._clock() - revisit_start
         if self.online.freeze_gc:
             # Python's full collections scan every live object: on a graph of a few
             # thousand poses that is a 20–40 ms pause at an unpredictable step, which no

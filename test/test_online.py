@@ -251,6 +251,20 @@ def test_online_budget_through_solve_online():
     assert len(result.chi2_trace) >= graph.num_nodes // 20
     times = [s for s, _ in result.chi2_trace]
     assert times == sorted(times)
+    # The required part leaves out only the spare-time revisits, which do happen.
+    spent, required = np.array(result.per_callback_ms), np.array(result.required_ms)
+    assert np.all(required <= spent) and np.all(required > 0)
+    assert np.sum(spent - required) > 0.2 * np.sum(spent)
+
+
+def test_revisits_fill_the_budget_and_are_timed_apart():
+    graph = manhattan(120, seed=3).graph
+    _, budgeted = _feed(graph, budget_s=5e-3)
+    assert sum(r.revisited for r in budgeted) > 0
+    assert all(0.0 <= r.revisit_s <= r.elapsed_s for r in budgeted)
+    assert all(r.revisit_s == 0.0 for r in budgeted if r.revisited == 0 and r.deferred)
+    _, unlimited = _feed(graph)
+    assert all(r.revisit_s == 0.0 and r.revisited == 0 for r in unlimited)
 
 
 def test_add_edge_only_queues_rebalancing_and_a_step_does_it():

@@ -229,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.report is not None:
         args.report.write_text(text + "\n")
     if args.trace is not None:
-        trace = {"callback_ms": result.per_callback_ms,
+        trace = {"callback_ms": result.per_callback_ms, "required_ms": result.required_ms,
                  "chi2_trace": [list(sample) for sample in result.chi2_trace]}
         args.trace.write_text(json.dumps(trace) + "\n")
     print(text)
