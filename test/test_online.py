@@ -313,6 +313,29 @@ def test_lateness_tracking_holds_back_its_995th_percentile():
     assert np.isclose(np.median(held_late), 0.4e-3 * np.log(200), rtol=0.15)
 
 
+def test_steps_overrun_their_budget_about_once_in_two_hundred():
+    """End to end through ``step``: each step's work ends a random time past the deadline it
+    was given (a missed prediction); what is held back must make that an overrun of the
+    whole budget in about 0.5 % of the steps, whatever the reserve already covers."""
+    budget = 5e-3
+    h2o = OnlineH2O(True, online=OnlineConfig(reserve=0.1, freeze_gc=False))
+    rng = np.random.default_rng(5)
+    now = [0.0]
+    h2o._clock = lambda: now[0]
+    overruns = []
+
+    def late_work(deadline: float, report: object) -> None:
+        now[0] = deadline + rng.exponential(0.2e-3)
+
+    h2o._relax_new = late_work  # type: ignore[method-assign]
+    for _ in range(20000):
+        now[0] += 1.0
+        start = now[0]
+        h2o.step(budget)
+        overruns.append(now[0] - start > budget)
+    assert 0.002 < np.mean(overruns[5000:]) < 0.01
+
+
 @pytest.mark.parametrize("freeze", [True, False])
 def test_steps_keep_the_garbage_collector_off_the_live_graph(freeze):
     import gc
