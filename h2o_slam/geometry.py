@@ -263,6 +263,23 @@ def relative_error(
     return np.concatenate([te, so3_log(Re)], axis=-1)
 
 
+def chain_product(R: Array, t: Array) -> tuple[Array, Array]:
+    """``T_0 · T_1 · … · T_{n-1}`` of a chain of poses (shape ``(n, …)``, ``n ≥ 1``).
+
+    Neighbours are multiplied pairwise, halving the chain each round: ``n - 1`` products in
+    ``⌈log₂ n⌉`` batched rounds, where the prefix scan of :func:`cumulative_compose` needs
+    ``n log₂ n`` for the same last pose.
+    """
+    while len(R) > 1:
+        even = len(R) - len(R) % 2
+        R_pair, t_pair = compose(R[0:even:2], t[0:even:2], R[1:even:2], t[1:even:2])
+        if even < len(R):
+            R_pair = np.concatenate([R_pair, R[-1:]])
+            t_pair = np.concatenate([t_pair, t[-1:]])
+        R, t = R_pair, t_pair
+    return R[0], t[0]
+
+
 def cumulative_compose(R: Array, t: Array) -> tuple[Array, Array]:
     """Prefix products ``P_k = T_0 · T_1 · … · T_k`` of a chain of poses (shape ``(n, …)``).
 

@@ -279,19 +279,21 @@ class OnlineH2O:
         limit = self.online.balance_max_subtree
         if limit is not None and tree.subtree_exceeds(node, limit):
             return True
-        # The cost is walking both ancestries to the earth (world poses) plus the subtree.
-        walk = int(tree.depth[node]) + int(tree.depth[parent])
+        # The cost is the tree path from the new parent to the node (their relative pose)
+        # plus the subtree.
         if deadline < math.inf:
             unit = self._hang_cost_per_node
-            # The walk is left out: on a long chain (before its first loop closes) it would
-            # never fit, and the chain would never be balanced.
+            # The walk is left out: closing a long loop it would never fit, and the loop
+            # would never be balanced.
             fits = int((deadline - self._clock()) / unit)
             if fits < 1 or tree.subtree_exceeds(node, fits):
                 # Only moves that run give samples: a high estimate must not lock the queue.
                 self._hang_cost_per_node = max(0.9 * unit, 1e-6)
                 return False
         begin = self._clock()
-        moved, affected = self.solver.reparent(node, parent, edge, refresh=False)
+        path = self.solver.tree_path(parent, node, edge)
+        walk = len(path.a_chain) + len(path.b_chain)
+        moved, affected = self.solver.reparent(node, parent, edge, refresh=False, path=path)
         sample = (self._clock() - begin) / (len(moved) + walk)
         self._hang_cost_per_node = max(0.8 * self._hang_cost_per_node + 0.2 * sample, 1e-6)
         self._stale.update(dict.fromkeys(affected))

@@ -624,20 +624,43 @@ class H2OSolver:
         R, t = self.tree.chain_poses(np.array(chain[::-1], dtype=np.int64))
         return R[-1], t[-1]
 
+    def relative_pose(self, a: int, b: int, path: EdgePath | None = None) -> tuple[Array, Array]:
+        """Pose of ``b`` in the frame of ``a`` (``a`` may be :data:`EARTH`), composed along
+        their tree path (``tree.path(a, b)``, found when not given): O(path length), where
+        two :meth:`world_pose` calls are O(depth)."""
+        path = self.tree.path(a, b) if path is None else path
+        R_a, t_a = self._chain_end(path.a_chain)
+        R_b, t_b = self._chain_end(path.b_chain)
+        return geo.between(R_a, t_a, R_b, t_b)
+
+    def _chain_end(self, chain: np.ndarray) -> tuple[Array, Array]:
+        if len(chain) == 0:
+            return np.eye(3), np.zeros(3)
+        return geo.chain_product(self.tree.R[chain], self.tree.t[chain])
+
+    def tree_path(self, a: int, b: int, edge: int = -1) -> EdgePath:
+        """``tree.path(a, b)``, from the cache of ``edge`` when it joins ``a`` and ``b``."""
+        if edge < 0:
+            return self.tree.path(a, b)
+        path = self.path(edge)
+        if int(self._edges.a[edge]) == a:
+            return path
+        return EdgePath(path.root, path.b_chain, path.a_chain)
+
     def reparent(
-        self, node: int, parent: int, edge: int, refresh: bool = True
+        self, node: int, parent: int, edge: int, refresh: bool = True,
+        path: EdgePath | None = None,
     ) -> tuple[list[int], set[int]]:
         """Hang ``node`` under ``parent`` (tied by ``edge``), keeping every world pose.
 
         Paths through the moved subtree change, so the edges touching it get new domains and
         new contributions to ``B`` (thesis 3.3.9). With ``refresh=False`` the caller refreshes
         the returned edges itself (:meth:`refresh_edges`), once for many re-parentings.
+        ``path`` is ``tree.path(parent, node)`` when the caller has it.
 
         Returns the moved subtree (its depths changed) and the edges whose paths changed.
         """
-        R_n, t_n = self.world_pose(node)
-        R_p, t_p = self.world_pose(parent) if parent != EARTH else (np.eye(3), np.zeros(3))
-        R_loc, t_loc = geo.between(R_p, t_p, R_n, t_n)
+        R_loc, t_loc = self.relative_pose(parent, node, path)
         moved = self.tree.reparent(node, parent, geo.renormalize(R_loc), t_loc)
         if edge >= 0:
             self._set_tree_edge(node, edge, forward=int(self._edges.a[edge]) == parent)

@@ -290,3 +290,13 @@ def test_renormalize_squares_the_drift():
     drift = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max()
     fixed = geo.renormalize(R)
     assert np.abs(np.swapaxes(fixed, 1, 2) @ fixed - np.eye(3)).max() < 10 * drift**2
+
+
+@given(st.integers(1, 40), st.integers(0, 2**31 - 1))
+def test_chain_product_is_the_last_prefix_product(n, seed):
+    rng = np.random.default_rng(seed)
+    R = geo.so3_exp(rng.normal(size=(n, 3)))
+    t = rng.normal(size=(n, 3))
+    R_all, t_all = geo.cumulative_compose(R, t)
+    R_end, t_end = geo.chain_product(R, t)
+    assert np.allclose(R_end, R_all[-1]) and np.allclose(t_end, t_all[-1])

@@ -247,3 +247,29 @@ def test_world_poses_survive_a_solver_round_trip():
     R, t = solver.world_poses()
     assert np.allclose(R, graph.R) and np.allclose(t, graph.t)
     assert np.isclose(solver.chi2(graph), chi2(graph))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_relative_pose_along_the_tree_path_equals_the_world_poses(seed):
+    graph = random_graph(seed, seed % 2 == 0, n=40, loops=10)
+    solver, _ = build_solver(graph, init="input")
+    R_world, t_world = solver.world_poses()
+    rng = np.random.default_rng(seed)
+    for a, b in rng.integers(0, graph.num_nodes, size=(20, 2)):
+        R, t = solver.relative_pose(int(a), int(b))
+        R_ab, t_ab = geo.between(R_world[a], t_world[a], R_world[b], t_world[b])
+        assert np.allclose(R, R_ab, atol=1e-10) and np.allclose(t, t_ab, atol=1e-9)
+    R, t = solver.relative_pose(EARTH, 7)
+    assert np.allclose(R, R_world[7]) and np.allclose(t, t_world[7])
+
+
+def test_tree_path_from_an_edge_cache_matches_the_walk_either_way_round():
+    graph = random_graph(5, True, n=30, loops=8)
+    solver, _ = build_solver(graph, init="input")
+    for e in range(solver.num_edges):
+        a, b = int(solver.a[e]), int(solver.b[e])
+        for x, y in ((a, b), (b, a)):
+            cached, walked = solver.tree_path(x, y, e), solver.tree.path(x, y)
+            assert cached.root == walked.root
+            assert np.array_equal(cached.a_chain, walked.a_chain)
+            assert np.array_equal(cached.b_chain, walked.b_chain)
