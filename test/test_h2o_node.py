@@ -96,6 +96,20 @@ def wheel_error(drive: world.Drive) -> float:
     return float(np.hypot(*(drive.wheel_poses()[-1, :2] - drive.truth[-1, :2])))
 
 
+def late_errors(outputs: dict[str, list[Any]], drive: world.Drive) -> tuple[float, float]:
+    """Mean position error of the poses published over the second half of the drive, and
+    of the wheel odometry at the same stamps."""
+    stamps = np.array([m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+                       for m in outputs["pose"]]) - DEFAULT_START_NS
+    xy = np.array([[m.pose.position.x, m.pose.position.y] for m in outputs["pose"]])
+    late = stamps >= drive.stamps_ns[len(drive.stamps_ns) // 2]
+    index = np.searchsorted(drive.stamps_ns, stamps[late])
+    truth = drive.truth[index, :2]
+    published = np.mean(np.hypot(*(xy[late] - truth).T))
+    wheel = np.mean(np.hypot(*(drive.wheel_poses()[index, :2] - truth).T))
+    return float(published), float(wheel)
+
+
 def latest_diagnostics(h: Harness, outputs: dict[str, list[Any]], node: H2ONode) -> dict[str, str]:
     count = len(outputs["diag"])
     node.publish_diagnostics()
@@ -130,7 +144,11 @@ def test_gps_anchors_the_graph_in_enu(harness: Harness, slip_drive: world.Drive)
     assert int(diag["accepted gps"]) > 40
     # Dropouts (NO_FIX) are refused and counted, with the reason.
     assert any("NO_FIX" in key for key in diag), diag
-    assert final_error(out, slip_drive) < 0.75 * wheel_error(slip_drive)
+    published, wheel = late_errors(out, slip_drive)
+    # Over the poses published, not the last one alone: that one follows the latest fixes
+    # (σ 1.5 m) and lands 0.9–4.7 m off between runs, against 2.4 m for the exact optimum.
+    # Here 1.6–1.7 m against 10 m.
+    assert published < 0.3 * wheel
     poses = node.mapper.poses()
     stamps = np.asarray(node.mapper.keyframes.stamps) - DEFAULT_START_NS
     truth = slip_drive.truth[np.searchsorted(slip_drive.stamps_ns, stamps)]
