@@ -300,3 +300,35 @@ def test_chain_product_is_the_last_prefix_product(n, seed):
     R_all, t_all = geo.cumulative_compose(R, t)
     R_end, t_end = geo.chain_product(R, t)
     assert np.allclose(R_end, R_all[-1]) and np.allclose(t_end, t_all[-1])
+
+
+@fast
+@given(st.integers(1, 300), st.integers(1, 3), st.integers(0, 2**31 - 1))
+def test_rotations_about_z_compose_by_adding_angles(n, batch, seed):
+    """The angle path (taken for long chains of z-rotations, as every planar graph's are)
+    gives what the general scan gives."""
+    rng = np.random.default_rng(seed)
+    R = geo.yaw_to_matrix(rng.uniform(-np.pi, np.pi, (n, batch)))
+    t = rng.normal(size=(n, batch, 3))
+    fast_R, fast_t = geo.cumulative_compose(R, t)
+    # A tilt of 1e-300 rad is invisible to the products but sends them down the scan.
+    tilted = R.copy()
+    tilted[..., 2, 0] = 1e-300
+    scan_R, scan_t = geo.cumulative_compose(tilted, t)
+    np.testing.assert_allclose(fast_R, scan_R, atol=1e-12)
+    np.testing.assert_allclose(fast_t, scan_t, atol=1e-10 * n)
+    end_R, end_t = geo.chain_product(R[:, 0], t[:, 0])
+    np.testing.assert_allclose(end_R, scan_R[-1, 0], atol=1e-12)
+    np.testing.assert_allclose(end_t, scan_t[-1, 0], atol=1e-10 * n)
+
+
+def test_planar_rotations_stay_exactly_about_z():
+    """What keeps planar chains on the angle path: products, exponentials of (0, 0, θ) and
+    renormalization leave the off-plane entries exactly zero."""
+    rng = np.random.default_rng(3)
+    R = geo.yaw_to_matrix(rng.uniform(-3.0, 3.0, 64))
+    R = geo.renormalize(R @ geo.so3_exp(np.c_[np.zeros((64, 2)), rng.normal(size=64)]))
+    R_all, _ = geo.cumulative_compose(R, np.zeros((64, 3)))
+    for M in (R, R_all):
+        assert np.all(M[:, 2, 2] == 1.0)
+        assert not np.any(M[:, 2, :2]) and not np.any(M[:, :2, 2])

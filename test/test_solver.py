@@ -273,3 +273,15 @@ def test_tree_path_from_an_edge_cache_matches_the_walk_either_way_round():
             assert cached.root == walked.root
             assert np.array_equal(cached.a_chain, walked.a_chain)
             assert np.array_equal(cached.b_chain, walked.b_chain)
+
+
+def test_planar_updates_keep_every_rotation_exactly_about_z():
+    """Long planar chains are composed by adding angles only while every rotation has exact
+    zeros off the plane; full and interpolated updates, with the guard, must keep them."""
+    graph = random_graph(4, planar=True, n=120, loops=30)
+    solver, _ = build_solver(graph)
+    for edge in range(solver.num_edges):
+        solver.relax(edge, d_max=3 if edge % 2 else None, guard=True)
+    R = solver.tree.R[: solver.tree.n]
+    assert np.all(R[:, 2, 2] == 1.0)
+    assert not np.any(R[:, 2, :2]) and not np.any(R[:, :2, 2])
