@@ -11,7 +11,7 @@ from h2o_slam import geometry as geo
 from h2o_slam import solver as solver_module
 from h2o_slam.graph import EARTH, EdgeKind, chi2, make_graph, odometry_chain
 from h2o_slam.modes import add_arrival, arrivals, solve_offline, solve_online
-from h2o_slam.online import OnlineConfig, OnlineH2O, best_fit_transform
+from h2o_slam.online import OnlineConfig, OnlineH2O, UpdateCost, best_fit_transform
 from h2o_slam.solver import SolverConfig
 from h2o_slam.synthetic import grid3d, manhattan
 
@@ -347,3 +347,33 @@ def test_steps_keep_the_garbage_collector_off_the_live_graph(freeze):
         assert (gc.get_freeze_count() > 0) == freeze
     finally:
         gc.unfreeze()
+
+
+def test_update_cost_tells_interpolated_from_full_updates():
+    """Most samples are tiny full updates; the model must still price a long interpolated
+    one near its cost (one (1, d, s) model for both priced 11 ms updates at 1 ms), and never
+    pick an interpolated update when the full one does not fit, since it costs more."""
+
+    def full(d):
+        return 2e-4 + 3e-6 * d
+
+    def interpolated(d, s):
+        return 8e-4 + 6e-6 * d + 1e-6 * s
+
+    cost = UpdateCost()
+    rng = np.random.default_rng(2)
+    for i in range(600):
+        if i % 20:
+            d = int(rng.integers(1, 4))
+            cost.update(d, d, full(d) * rng.uniform(0.95, 1.05))
+        else:
+            d, s = int(rng.integers(200, 1500)), int(rng.integers(2, 50))
+            cost.update(d, s, interpolated(d, s) * rng.uniform(0.95, 1.05))
+            cost.update(d, d, full(d) * rng.uniform(0.95, 1.05))
+    assert cost.predict(1443, 5) == pytest.approx(interpolated(1443, 5), rel=0.25)
+    assert cost.predict(1443, 1443) == pytest.approx(full(1443), rel=0.25)
+    assert cost.largest_fitting(1443, 1443, 0.8 * full(1443), safety=1.0) == 0
+    assert cost.largest_fitting(62, 62, 2.0 * full(62), safety=1.0) == 62
+    # With d_max below the domain only interpolated updates are allowed.
+    assert cost.largest_fitting(1443, 40, 3.0 * interpolated(1443, 40), safety=1.0) == 40
+    assert cost.largest_fitting(1443, 40, 0.8 * interpolated(1443, 2), safety=1.0) == 0
