@@ -26,6 +26,11 @@ def run_node(make: Callable[[], Node], name: str,
             rclpy.spin(node)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass  # Ctrl-C or SIGTERM: a normal stop
+        except Exception:
+            # SIGTERM shuts the context down from the signal handler; a callback publishing
+            # at that moment fails with "context is invalid". Only that is a normal stop.
+            if rclpy.ok():
+                raise
         finally:
             node.destroy_node()
     finally:
