@@ -271,8 +271,8 @@ def chain_product(R: Array, t: Array) -> tuple[Array, Array]:
     ``n log₂ n`` for the same last pose.
     """
     if _worth_the_angle_path(R) and _about_z(R):
-        R_all, t_all = _cumulative_compose_about_z(R, t)
-        return R_all[-1], t_all[-1]
+        yaw, moved = _angles_and_moves(R, t)
+        return yaw_to_matrix(yaw[-1]), moved.sum(axis=0)
     while len(R) > 1:
         even = len(R) - len(R) % 2
         R_pair, t_pair = compose(R[0:even:2], t[0:even:2], R[1:even:2], t[1:even:2])
@@ -319,10 +319,17 @@ def _about_z(R: Array) -> bool:
 def _cumulative_compose_about_z(R: Array, t: Array) -> tuple[Array, Array]:
     """:func:`cumulative_compose` for rotations about ``z``: angles add, so the prefix
     products are two cumulative sums (O(n), against the scan's ``n log₂ n`` 3×3 products —
-    40× faster on a 1443-node path)."""
+    10× faster on a 1443-node path)."""
+    yaw, moved = _angles_and_moves(R, t)
+    return yaw_to_matrix(yaw), np.cumsum(moved, axis=0)
+
+
+def _angles_and_moves(R: Array, t: Array) -> tuple[Array, Array]:
+    """Prefix angles of rotations about ``z``, and each translation turned by the angle
+    before it (whose prefix sums are the prefix translations)."""
     yaw = np.cumsum(np.arctan2(R[..., 1, 0], R[..., 0, 0]), axis=0)
     before = np.concatenate([np.zeros_like(yaw[:1]), yaw[:-1]])
     c, s = np.cos(before), np.sin(before)
     moved = np.stack([c * t[..., 0] - s * t[..., 1], s * t[..., 0] + c * t[..., 1], t[..., 2]],
                      axis=-1)
-    return yaw_to_matrix(yaw), np.cumsum(moved, axis=0)
+    return yaw, moved
