@@ -16,11 +16,13 @@ the one evaluator :func:`h2o_slam.graph.chi2`.
 from __future__ import annotations
 
 import time
+from collections.abc import Collection
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from h2o_slam import geometry as geo
+from h2o_slam.converge import ConvergeState, converge_exact
 from h2o_slam.geometry import Array
 from h2o_slam.graph import EARTH, EdgeKind, PoseGraph, chi2, edge_chi2
 from h2o_slam.online import OnlineConfig, OnlineH2O
@@ -42,6 +44,13 @@ class SolveResult:
             i.e. what each callback had to spend (ms).
         chi2_trace: online mode: ``(cumulative callback seconds, χ²)`` samples.
         deferred_edges: online mode: edges still waiting when the last pose arrived.
+        converged: exact mode: χ² stopped falling before the iteration cap.
+        chi2_end_of_stream: online mode: χ² when the last pose's callback returned.
+        chi2_after_idle: online mode: χ² after the idle steps that follow.
+        idle_steps: online mode: idle steps run after the last arrival.
+        exact: online mode: what the exact solves beside the updates did.
+        samples: online mode with ``trace_every``: ``(edges so far, χ² of those edges at
+            the estimate then)`` along the stream (see :func:`optimality_ratios`).
     """
 
     R: Array
@@ -52,6 +61,12 @@ class SolveResult:
     required_ms: list[float] = field(default_factory=list)
     chi2_trace: list[tuple[float, float]] = field(default_factory=list)
     deferred_edges: int = 0
+    converged: bool | None = None
+    chi2_end_of_stream: float | None = None
+    chi2_after_idle: float | None = None
+    idle_steps: int = 0
+    samples: list[tuple[int, float]] = field(default_factory=list)
+    exact: ConvergeState | None = None
 
     @property
     def chi2_final(self) -> float:
@@ -153,46 +168,14 @@ def solve_exact(
     graph: PoseGraph, iterations: int = 20, config: SolverConfig | None = None,
     init: str = "tree",
 ) -> SolveResult:
-    """Gauss–Newton on the batch of all edges, with Levenberg damping when χ² would rise;
-    see :func:`build_solver` for ``init``."""
+    """Gauss–Newton on the batch of all edges, with Levenberg damping when χ² would rise,
+    until χ² stops falling or ``iterations`` run out; see :func:`build_solver` for ``init``."""
     solver, start = build_solver(graph, config, init)
-    tol = solver.config.exact_tolerance
-    current = chi2(start)
-    result = SolveResult(start.R.copy(), start.t.copy(), current)
-    damping = 0.0
-    for _ in range(iterations):
-        improved, current_new = _damped_step(solver, graph, current, damping)
-        if improved is None:
-            break
-        damping = improved
-        done = current - current_new <= tol * max(current, 1e-300)
-        current = current_new
-        result.chi2_per_pass.append(current)
-        if done:
-            break
+    history, converged = converge_exact(solver, iterations)
+    result = SolveResult(start.R.copy(), start.t.copy(), history[0], history[1:])
+    result.converged = converged
     result.R, result.t = solver.world_poses()
     return result
-
-
-def _damped_step(
-    solver: H2OSolver, graph: PoseGraph, current: float, damping: float
-) -> tuple[float | None, float]:
-    """Take one exact step, raising the damping until χ² does not rise.
-
-    Returns the damping to use next (None when no step helps) and the new χ².
-    """
-    saved_R = solver.tree.R.copy()
-    saved_t = solver.tree.t.copy()
-    for _ in range(12):
-        x, nodes = solver.exact_step(damping)
-        solver.apply_step(nodes, x)
-        new = solver.chi2(graph)
-        if np.isfinite(new) and new <= current:
-            return damping / 10.0 if damping > 1e-9 else 0.0, new
-        solver.tree.R[:] = saved_R
-        solver.tree.t[:] = saved_t
-        damping = max(1e-6, damping * 10.0)
-    return None, current
 
 
 def solve_lago(graph: PoseGraph) -> SolveResult:
@@ -210,17 +193,52 @@ def solve_online(
     budget_s: float | None = None,
     online: OnlineConfig | None = None,
     trace_every: int = 0,
+    idle_s: float = 0.0,
+    sample_nodes: Collection[int] = (),
 ) -> SolveResult:
-    """Feed the graph pose by pose (thesis Algorithm 1), then run ``passes`` offline passes.
+    """Feed the graph pose by pose (thesis Algorithm 1), let the robot stand for ``idle_s``
+    seconds, then run ``passes`` offline passes.
 
     Each arriving pose is one callback: its edges are added (AddEdge, with tree balancing)
     and one :meth:`~h2o_slam.online.OnlineH2O.step` runs in what is left of ``budget_s``
-    (``None``: every new edge is relaxed in full). The wall time of every callback is
-    recorded; with ``trace_every > 0`` the χ² is sampled every that many callbacks, outside
-    the timed region, against the cumulative callback time.
+    (``None``: no limit). The wall time of every callback is recorded; with
+    ``trace_every > 0`` the χ² is sampled every that many callbacks, outside the timed
+    region, against the cumulative callback time. After the callback of each node in
+    ``sample_nodes``, ``(nodes so far, χ² of their edges)`` goes to ``result.samples``.
+
+    Idle steps (no new edge) run with the same budget, one per budget period (the robot's
+    other work keeps the rest of the CPU); unbudgeted, a single idle step solves the map
+    exactly.
     """
     h2o = OnlineH2O(graph.planar, config, online)
-    result = SolveResult(graph.R.copy(), graph.t.copy(), chi2(graph))
+    try:
+        result = SolveResult(graph.R.copy(), graph.t.copy(), chi2(graph))
+        spent = _stream(h2o, graph, budget_s, trace_every, set(sample_nodes), result)
+        result.deferred_edges = len(h2o.pending)
+        result.chi2_end_of_stream = h2o.solver.chi2(graph)
+        spent += _idle(h2o, budget_s, idle_s, result)
+        result.chi2_after_idle = h2o.solver.chi2(graph)
+        result.chi2_per_pass.append(result.chi2_after_idle)
+        if trace_every and result.idle_steps:
+            result.chi2_trace.append((spent, result.chi2_after_idle))
+        order = offline_order(h2o.solver)
+        for _ in range(passes):
+            start = time.perf_counter()
+            offline_pass(h2o.solver, order, h2o.online.d_max)
+            spent += time.perf_counter() - start
+            result.chi2_per_pass.append(h2o.solver.chi2(graph))
+            if trace_every:
+                result.chi2_trace.append((spent, result.chi2_per_pass[-1]))
+        result.R, result.t = h2o.solver.world_poses()
+        result.exact = h2o.converger.state
+    finally:
+        h2o.close()
+    return result
+
+
+def _stream(h2o: OnlineH2O, graph: PoseGraph, budget_s: float | None, trace_every: int,
+            sample_nodes: set[int], result: SolveResult) -> float:
+    """Run every arrival's callback; returns the seconds they took."""
     spent = 0.0
     for node, edges in enumerate(arrivals(graph)):
         start = time.perf_counter()
@@ -233,18 +251,35 @@ def solve_online(
         result.required_ms.append(1e3 * (elapsed - report.revisit_s))
         if trace_every and (node % trace_every == 0 or node == graph.num_nodes - 1):
             result.chi2_trace.append((spent, _partial_chi2(h2o, graph)))
-    result.deferred_edges = len(h2o.pending)
-    result.chi2_per_pass.append(h2o.solver.chi2(graph))
-    order = offline_order(h2o.solver)
-    for _ in range(passes):
+        if node in sample_nodes:
+            result.samples.append((node + 1, _partial_chi2(h2o, graph)))
+    return spent
+
+
+def _idle(h2o: OnlineH2O, budget_s: float | None, idle_s: float, result: SolveResult) -> float:
+    """Idle steps for ``idle_s`` seconds of wall time; returns the seconds they took."""
+    if idle_s <= 0.0:
+        return 0.0
+    spent = 0.0
+    end = time.perf_counter() + idle_s
+    while True:
         start = time.perf_counter()
-        offline_pass(h2o.solver, order, h2o.online.d_max)
+        h2o.step(budget_s)
         spent += time.perf_counter() - start
-        result.chi2_per_pass.append(h2o.solver.chi2(graph))
-        if trace_every:
-            result.chi2_trace.append((spent, result.chi2_per_pass[-1]))
-    result.R, result.t = h2o.solver.world_poses()
-    return result
+        result.idle_steps += 1
+        if budget_s is None or time.perf_counter() + budget_s > end:
+            return spent
+        time.sleep(budget_s)
+
+
+def prefix_graph(graph: PoseGraph, nodes: int) -> PoseGraph:
+    """The first ``nodes`` nodes of ``graph`` and the edges among them: what a robot fed
+    the graph pose by pose holds after pose ``nodes - 1``."""
+    newest = np.where(graph.a == EARTH, graph.b, np.maximum(graph.a, graph.b))
+    keep = newest < nodes
+    return PoseGraph(graph.planar, graph.ids[:nodes], graph.R[:nodes], graph.t[:nodes],
+                     graph.kind[keep], graph.a[keep], graph.b[keep], graph.meas_R[keep],
+                     graph.meas_t[keep], graph.info[keep])
 
 
 def _partial_chi2(h2o: OnlineH2O, graph: PoseGraph) -> float:

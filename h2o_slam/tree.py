@@ -152,6 +152,22 @@ class PoseTree:
         tree.t[:n] = np.where(top[:, None], t_world, t_loc)
         return tree
 
+    @classmethod
+    def from_local(cls, parent: np.ndarray, R_local: Array, t_local: Array) -> PoseTree:
+        """A tree with the given parent pointers and local transforms (copied).
+
+        Raises:
+            ValueError: the parent pointers contain a cycle.
+        """
+        n = len(parent)
+        tree = cls(capacity=max(n, 1))
+        tree.n = n
+        tree.parent[:n] = parent
+        tree.depth[:n] = _depths(np.asarray(parent))
+        tree.R[:n] = R_local
+        tree.t[:n] = t_local
+        return tree
+
     # -- queries ------------------------------------------------------------------------------
 
     def path(self, a: int, b: int) -> EdgePath:
@@ -186,12 +202,12 @@ class PoseTree:
         n = self.n
         R = self.R[:n].copy()
         t = self.t[:n].copy()
-        for level in self._levels():
+        for level in self.levels():
             p = self.parent[level]
             R[level], t[level] = geo.compose(R[p], t[p], self.R[level], self.t[level])
         return R, t
 
-    def _levels(self) -> list[np.ndarray]:
+    def levels(self) -> list[np.ndarray]:
         """Node indices grouped by depth ≥ 2, shallowest first."""
         depth = self.depth[: self.n]
         order = np.argsort(depth, kind="stable")
@@ -211,7 +227,7 @@ class PoseTree:
     def tops(self) -> np.ndarray:
         """The top of each node's subtree (its ancestor just below the earth)."""
         top = np.arange(self.n)
-        for level in self._levels():
+        for level in self.levels():
             top[level] = top[self.parent[level]]
         return top
 
