@@ -451,7 +451,7 @@ class Converger:
         self._merging: Solution | None = None
         self._cursor = 0
         # Seconds: a whole inline solve by edges; a merge and a snapshot copy by nodes.
-        self.inline_cost = CostModel((2e-3, 1e-4), (1000.0,))
+        self.inline_cost = CostModel((2e-3, 5e-5), (1000.0,))
         self.merge_cost = CostModel((2e-5, 2e-7), (1000.0,))
         self.copy_cost = CostModel((1e-4, 2e-7), (1000.0,))
 

@@ -168,6 +168,7 @@ class H2ONode(Node):
         would keep this node's reference cycles, and with them its DDS participant, alive
         for the rest of the process.
         """
+        self.mapper.close()
         super().destroy_node()
         gc.unfreeze()
         gc.collect()
@@ -197,6 +198,9 @@ class H2ONode(Node):
             gps_lever_arm_m=(lever[0], lever[1]),
             budget_ms=float(self.p("budget_ms")) or None,
             d_max=d_max if d_max > 0 else None,
+            # Budgeted callbacks get a worker process for the exact solves; unbudgeted
+            # (deterministic) ones solve inline and need none.
+            background="process" if float(self.p("budget_ms")) > 0.0 else "inline",
         )
 
     def _start_mapper(self) -> Mapper:
@@ -297,12 +301,15 @@ class H2ONode(Node):
         self._graph_dirty = True
 
     def idle_step(self) -> None:
-        """Work on edges the input callbacks could not fit (e.g. a GPS edge whose path is
-        longer than ``budget_ms`` allows), in time the node would otherwise sit idle. It
-        delays the next input by at most ``idle_budget_ms`` and never runs when nothing
-        waits, so it costs nothing on a graph the callbacks keep up with."""
+        """Work the input callbacks left, in time the node would otherwise sit idle: edges
+        that did not fit (e.g. a GPS edge whose path is longer than ``budget_ms`` allows),
+        and the exact solution of the graph (merged, or started in the worker). It delays
+        the next input by at most ``idle_budget_ms`` and never runs when nothing waits, so
+        it costs nothing once the map is at its optimum."""
         budget_ms = float(self.p("idle_budget_ms"))
-        if self.paused or budget_ms == 0.0 or not self.mapper.h2o.pending:
+        h2o = self.mapper.h2o
+        waiting = h2o.pending or h2o.converger.busy or h2o.converger.outside()
+        if self.paused or budget_ms == 0.0 or not waiting:
             return
         start = time.perf_counter()
         self.mapper.step(1e-3 * budget_ms)
@@ -426,10 +433,16 @@ class H2ONode(Node):
         budget = float(self.p("budget_ms"))
         summary = self.times.summary()
         graph = self.mapper.graph()
+        ratio, outside = self.mapper.optimality()
+        exact = self.mapper.h2o.converger.state
         values: dict[str, object] = {
             "budget_ms": budget, **summary,
             "nodes": self.mapper.num_nodes, "edges": graph.num_edges,
             "chi2": float(np.sum(edge_chi2(graph))) if graph.num_edges else 0.0,
+            "optimality_ratio": ratio,
+            "edges_outside_converged": outside,
+            "exact_solves": exact.solves,
+            "exact_failures": exact.failures,
             "deferred_edges": len(self.mapper.h2o.pending),
             "idle_steps": self.idle_times.count,
             "idle_max_ms": self.idle_times.max_ms,
@@ -477,6 +490,7 @@ class H2ONode(Node):
         return response
 
     def _srv_reset(self, request: Any, response: Any) -> Any:
+        self.mapper.close()
         self.mapper = Mapper(self.mapper_config())
         self._datum = self._configured_datum()
         self._last_gps_ns = None

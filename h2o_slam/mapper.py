@@ -75,6 +75,8 @@ class MapperConfig:
         gps_lever_arm_m: antenna position ``(x, y)`` in ``base_link``.
         budget_ms: per-callback solver time; ``None`` solves every new edge in full.
         d_max: most nodes solved for per edge (``None``: as many as the budget allows).
+        background: where the exact solves that take the map to its optimum run
+            (``OnlineConfig.background``): ``process``, ``inline`` or ``off``.
     """
 
     keyframe_distance_m: float = 0.5
@@ -91,6 +93,7 @@ class MapperConfig:
     gps_lever_arm_m: tuple[float, float] = (0.0, 0.0)
     budget_ms: float | None = 5.0
     d_max: int | None = None
+    background: str = "inline"
 
     def __post_init__(self) -> None:
         for name in ("keyframe_distance_m", "keyframe_angle_rad", "keyframe_period_s",
@@ -217,7 +220,8 @@ class Mapper:
                  solver: SolverConfig | None = None) -> None:
         self.config = config or MapperConfig()
         self._solver_config = solver
-        self.h2o = OnlineH2O(True, solver, OnlineConfig(d_max=self.config.d_max))
+        self.h2o = OnlineH2O(True, solver, OnlineConfig(d_max=self.config.d_max,
+                                                        background=self.config.background))
         self.keyframes = Keyframes()
         self.track = OdometryTrack()
         self.rejected: Counter[str] = Counter()
@@ -444,27 +448,34 @@ class Mapper:
         self.last_report = self.h2o.step(budget_s)
         return self.last_report
 
-    def exact_solve(self, iterations: int = 10) -> tuple[float, float]:
-        """Gauss–Newton of all edges (Levenberg-damped) on the current graph; returns χ²
-        before and after."""
-        graph = self.graph()
-        solver = self.h2o.solver
-        before = current = float(np.sum(edge_chi2(graph)))
-        damping = 0.0
-        for _ in range(iterations):
-            saved = solver.tree.R.copy(), solver.tree.t.copy()
-            x, nodes = solver.exact_step(damping)
-            solver.apply_step(nodes, x)
-            new = float(np.sum(edge_chi2(self.graph())))
-            if not (math.isfinite(new) and new <= current):
-                solver.tree.R[:], solver.tree.t[:] = saved
-                damping = max(1e-6, 10.0 * damping)
-                continue
-            done = current - new <= 1e-9 * max(current, 1e-300)
-            current, damping = new, damping / 10.0
-            if done:
-                break
-        return before, current
+    def exact_solve(self) -> tuple[float, float]:
+        """Solve the graph exactly now (damped Gauss–Newton to convergence) and merge it;
+        returns χ² before and after."""
+        before = self.chi2()
+        self.h2o.converge()
+        return before, self.chi2()
+
+    def chi2(self) -> float:
+        """χ² of every edge at the current estimate."""
+        return float(np.sum(edge_chi2(self.graph()))) if self.h2o.solver.num_edges else 0.0
+
+    def optimality(self) -> tuple[float, int]:
+        """χ² of the edges in the last converged exact solution, at the current estimate, over
+        that solution's χ² (1 right after it is merged; NaN before the first), and the edges
+        not in it."""
+        state = self.h2o.converger.state
+        outside = self.h2o.converger.outside()
+        if state.converged_edges == 0:
+            return math.nan, outside
+        now = float(np.sum(edge_chi2(self.graph())[: state.converged_edges]))
+        # Rounding leaves ~1e-25 on a graph that fits exactly (a chain): a floor of 1e-12
+        # per edge keeps that from reading as a ratio far from 1.
+        floor = 1e-12 * state.converged_edges
+        return (now + floor) / (state.converged_chi2 + floor), outside
+
+    def close(self) -> None:
+        """Stop the exact solver's worker process, if any."""
+        self.h2o.close()
 
     # -- outputs ------------------------------------------------------------------------------
 

@@ -272,6 +272,23 @@ def _idle(h2o: OnlineH2O, budget_s: float | None, idle_s: float, result: SolveRe
         time.sleep(budget_s)
 
 
+def sample_points(graph: PoseGraph, count: int) -> list[int]:
+    """Poses after whose callback to sample the map: ``count`` spread evenly over the stream,
+    and up to ``count`` among those that bring a loop closure (an edge to a pose other than
+    the one before), spread evenly over them."""
+    if count <= 0 or graph.num_nodes == 0:
+        return []
+    n = graph.num_nodes
+    spread = np.linspace(0, n - 1, min(count, n)).round().astype(int)
+    rel = graph.kind == EdgeKind.RELATIVE
+    newest = np.maximum(graph.a, graph.b)
+    gap = np.abs(graph.a - graph.b)
+    closing = np.unique(newest[rel & (gap > 1)])
+    picked = closing[np.linspace(0, len(closing) - 1, min(count, len(closing))).round()
+                     .astype(int)] if len(closing) else closing
+    return sorted({int(k) for k in np.concatenate([spread, picked])})
+
+
 def prefix_graph(graph: PoseGraph, nodes: int) -> PoseGraph:
     """The first ``nodes`` nodes of ``graph`` and the edges among them: what a robot fed
     the graph pose by pose holds after pose ``nodes - 1``."""

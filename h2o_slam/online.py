@@ -530,10 +530,10 @@ class OnlineH2O:
             # Nothing fit: the margin learnt from one slow sample must not lock the queue
             # for good, since only updates that run produce new samples.
             self.cost.relax_margins()
-        if budget_s is not None and not self.pending and not self.converger.enabled:
+        if budget_s is not None and not self.pending and self.online.background != "process":
             # Revisits settle at H₂O's own fixed point, not at the optimum (thesis 3.5):
-            # beside exact solves they only move the map away from the last solution
-            # (measured on city10000 at 5 ms: median r 4.5 with them, 2.4 without).
+            # beside a worker's exact solves they only move the map away from the last
+            # solution (measured on city10000 at 5 ms: median r 4.5 with them, 2.4 without).
             revisit_start = self._clock()
             self._revisit(deadline, report)
             report.revisit_s = self._clock() - revisit_start
@@ -616,11 +616,14 @@ class OnlineH2O:
         that one stubborn edge cannot take every spare millisecond.
         """
         waiting = set(self.pending)
+        # Edges in the last merged exact solution are at its optimum: relaxing one toward
+        # its own measurement would only move the map away from it.
+        lo = self.converger.state.solution_edges
         m = self.solver.num_edges
-        self._refresh_priorities(min(m, 16), deadline)
+        self._refresh_priorities(min(m - lo, 16), deadline, lo)
         tried = 0
-        while self._clock() < deadline and tried < m:
-            edge = int(np.argmax(self._priority[:m]))
+        while self._clock() < deadline and tried < m - lo:
+            edge = lo + int(np.argmax(self._priority[lo:m]))
             tried += 1
             if edge in waiting or self._priority[edge] <= 0.0:
                 break
@@ -629,12 +632,12 @@ class OnlineH2O:
             self._priority[edge] *= 0.5
             report.revisited += 1
 
-    def _refresh_priorities(self, count: int, deadline: float) -> None:
+    def _refresh_priorities(self, count: int, deadline: float, lo: int = 0) -> None:
         m = self.solver.num_edges
         for _ in range(count):
             if self._clock() >= deadline:
                 return
-            e = self._refresh_cursor % m
+            e = lo + self._refresh_cursor % (m - lo)
             self._refresh_cursor += 1
             r = self.solver.residual(e)
             self._priority[e] = float(r @ r)

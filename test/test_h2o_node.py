@@ -205,7 +205,8 @@ def test_save_restart_restore_continues_without_loss(harness: Harness, tmp_path:
 
 
 def test_budget_changes_at_run_time(harness: Harness, slip_drive: world.Drive) -> None:
-    node, out = start(harness, budget_ms=5.0)
+    # Idle steps off: they take their own budget, and run while exact solves are merged.
+    node, out = start(harness, budget_ms=5.0, idle_budget_ms=0.0)
     budgets: list[float | None] = []
     step = node.mapper.step
 
@@ -320,6 +321,10 @@ def test_pause_reset_and_exact_solve_services(harness: Harness,
     harness.call(SetBool, "h2o_node/pause", SetBool.Request(data=False))
     answer = harness.call(Trigger, "h2o_node/exact_solve", Trigger.Request())
     assert answer.success and "chi2" in answer.message
+    values = node.diagnostics().values
+    assert values["edges"] > 0
+    assert values["deferred_edges"] == 0 and values["edges_outside_converged"] == 0
+    assert values["optimality_ratio"] == pytest.approx(1.0, rel=1e-9)
     answer = harness.call(Trigger, "h2o_node/reset", Trigger.Request())
     assert answer.success and node.mapper.num_nodes == 0
     harness.spin_for(0.2)

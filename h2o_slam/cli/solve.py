@@ -3,7 +3,7 @@
     h2o-solve INPUT.g2o --output OUT.g2o [--mode offline|online|exact] [--passes N]
               [--init tree|input|lago] [--solver h2o|lago] [--d-max N] [--budget-ms X]
               [--gps-batch-size N] [--gps-every K --gps-sigma S] [--report REPORT.json]
-              [--trace TRACE.json]
+              [--trace TRACE.json] [--idle-s S] [--samples N]
 
 The work is :func:`solve_file`; this module's ``main`` only parses arguments, prints, and maps
 errors to a one-line message and a non-zero exit code.
@@ -13,10 +13,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -26,6 +28,7 @@ from h2o_slam.graph import PoseGraph
 from h2o_slam.modes import (
     INITS,
     SolveResult,
+    sample_points,
     solve_exact,
     solve_lago,
     solve_offline,
@@ -57,6 +60,10 @@ class SolveOptions:
         gps_batch_size: GPS edges relaxed together.
         gps_every, gps_sigma_m: add a GPS edge every ``gps_every`` poses at the graph's exact
             optimum plus noise of ``gps_sigma_m`` (0: none).
+        idle_s: online mode: seconds of budgeted idle steps after the last arrival (the
+            robot stops; the exact solver beside the updates finishes its work).
+        samples: online mode: sample χ² of the edges so far at this many poses spread over
+            the stream and as many after loop closures (0: none).
     """
 
     mode: str = "offline"
@@ -68,6 +75,8 @@ class SolveOptions:
     gps_batch_size: int = 30
     gps_every: int = 0
     gps_sigma_m: float = 1.0
+    idle_s: float = 1.0
+    samples: int = 0
 
     def __post_init__(self) -> None:
         for name, value, allowed in (("solver", self.solver, SOLVERS),
@@ -84,6 +93,10 @@ class SolveOptions:
             raise InputError("--budget-ms applies to --mode online only")
         if self.gps_batch_size < 1:
             raise InputError("--gps-batch-size must be at least 1")
+        if not 0.0 <= self.idle_s < math.inf:
+            raise InputError("--idle-s must be a non-negative number of seconds")
+        if self.samples < 0:
+            raise InputError("--samples must be non-negative")
 
 
 @dataclass
@@ -107,6 +120,13 @@ class SolveReport:
     overruns: int | None = None
     deferred_edges: int | None = None
     gps_edges_added: int = 0
+    converged: bool | None = None
+    chi2_end_of_stream: float | None = None
+    chi2_after_idle: float | None = None
+    idle_s: float | None = None
+    idle_steps: int | None = None
+    exact: dict[str, Any] | None = None
+    samples: list[list[float]] | None = None
 
 
 def solve_file(
@@ -148,7 +168,11 @@ def solve_file(
         overruns=(sum(t > budget for t in result.per_callback_ms)
                   if online and budget is not None else None),
         deferred_edges=result.deferred_edges if online else None,
-        gps_edges_added=added,
+        gps_edges_added=added, converged=result.converged,
+        chi2_end_of_stream=result.chi2_end_of_stream, chi2_after_idle=result.chi2_after_idle,
+        idle_s=opt.idle_s if online else None, idle_steps=result.idle_steps if online else None,
+        exact=asdict(result.exact) if result.exact is not None else None,
+        samples=[list(sample) for sample in result.samples] if online else None,
     )
     return report, result
 
@@ -161,8 +185,12 @@ def _solve(graph: PoseGraph, opt: SolveOptions, passes: int) -> SolveResult:
         return solve_offline(graph, passes, config, init=opt.init, d_max=opt.d_max)
     if opt.mode == "online":
         budget_s = None if opt.budget_ms is None else opt.budget_ms / 1e3
-        return solve_online(graph, passes, config, budget_s, OnlineConfig(d_max=opt.d_max),
-                            trace_every=max(1, graph.num_nodes // 200))
+        # Unbudgeted, the exact solves run inline on their schedule: no worker is needed.
+        background = "process" if budget_s is not None and budget_s < 1.0 else "inline"
+        online = OnlineConfig(d_max=opt.d_max, background=background)
+        return solve_online(graph, passes, config, budget_s, online,
+                            trace_every=max(1, graph.num_nodes // 200), idle_s=opt.idle_s,
+                            sample_nodes=sample_points(graph, opt.samples))
     return solve_exact(graph, passes, config, init=opt.init)
 
 
@@ -203,6 +231,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="add a GPS edge every K poses, at the graph's exact optimum plus noise")
     p.add_argument("--gps-sigma", type=float, default=1.0,
                    help="noise (m, per axis) of the GPS edges --gps-every adds (default 1)")
+    p.add_argument("--idle-s", type=float, default=1.0,
+                   help="online mode: seconds of budgeted idle steps after the last pose "
+                        "(the robot stops; default 1)")
+    p.add_argument("--samples", type=int, default=0,
+                   help="online mode: sample χ² of the edges so far at N poses over the stream "
+                        "and N after loop closures, into the report (default 0)")
     p.add_argument("--report", type=Path, default=None, help="write a JSON report here")
     p.add_argument("--trace", type=Path, default=None,
                    help="online mode: write per-callback times and χ² samples (JSON) here")
@@ -216,7 +250,8 @@ def main(argv: list[str] | None = None) -> int:
         options = SolveOptions(
             mode=args.mode, passes=args.passes, init=args.init, solver=args.solver,
             d_max=args.d_max, budget_ms=args.budget_ms, gps_batch_size=args.gps_batch_size,
-            gps_every=args.gps_every, gps_sigma_m=args.gps_sigma,
+            gps_every=args.gps_every, gps_sigma_m=args.gps_sigma, idle_s=args.idle_s,
+            samples=args.samples,
         )
         report, result = solve_file(args.input, args.output, options)
     except H2OError as err:
