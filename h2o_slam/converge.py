@@ -225,8 +225,8 @@ class SharedArrays:
         for name, (shape, dtype) in shapes.items():
             offsets[name] = size
             size += int(np.prod(shape)) * np.dtype(dtype).itemsize
-        mode = "w+" if create else "r+"
-        self._buf = np.memmap(path, dtype=np.uint8, mode=mode, shape=(max(size, 1),))
+        self._buf = np.memmap(path, dtype=np.uint8, mode="w+" if create else "r+",
+                              shape=(max(size, 1),))
         self.arrays = {
             name: np.ndarray(shape, dtype=dtype, buffer=self._buf, offset=offsets[name])
             for name, (shape, dtype) in shapes.items()
@@ -267,12 +267,8 @@ def _worker_main(conn: Connection, reply: Connection) -> None:
         if shared is None or str(shared.path) != path:
             shared = SharedArrays(Path(path), _layout(capacity), create=False)
         problem.add_edges(rows)
-        _t0 = __import__("time").perf_counter()
         sol = problem.solve(shared["parent"][:n].copy(), shared["R"][:n].copy(),
                             shared["t"][:n].copy(), edges, generation, iterations)
-        if os.environ.get("H2O_DEBUG"):
-            print("job", n, edges, sol.iterations, sol.converged, sol.chi2_start, sol.chi2,
-                  round(__import__("time").perf_counter() - _t0, 3), sol.error, file=sys.stderr)
         if not sol.error:
             shared["R_out"][:n] = sol.R
             shared["t_out"][:n] = sol.t
