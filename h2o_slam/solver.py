@@ -805,12 +805,14 @@ def _solve_spd(H: sp.csc_matrix, g: Array) -> Array:
     30 000 unknowns: 0.05 s against 0.18 s); where it finds no factor (a singular ``H``)
     SuperLU, and for an unconstrained direction the minimum-norm solution.
     """
+    if H.shape[0] == 0:
+        return np.zeros(0)  # every node fixed: nothing to solve for
     if qdldl is not None:
         try:
             x = _LDL.solve(sp.triu(H, format="csc"), g)
             if np.all(np.isfinite(x)):
                 return x
-        except RuntimeError:
+        except (RuntimeError, ValueError):
             pass  # not quasi-definite: singular
     try:
         # Symmetric mode without pivoting keeps the minimum-degree ordering's sparsity: with
