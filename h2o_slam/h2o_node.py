@@ -433,12 +433,13 @@ class H2ONode(Node):
         budget = float(self.p("budget_ms"))
         summary = self.times.summary()
         graph = self.mapper.graph()
-        ratio, outside = self.mapper.optimality()
+        per_edge = edge_chi2(graph) if graph.num_edges else np.zeros(0)
+        ratio, outside = self.mapper.optimality(per_edge)
         exact = self.mapper.h2o.converger.state
         values: dict[str, object] = {
             "budget_ms": budget, **summary,
             "nodes": self.mapper.num_nodes, "edges": graph.num_edges,
-            "chi2": float(np.sum(edge_chi2(graph))) if graph.num_edges else 0.0,
+            "chi2": float(np.sum(per_edge)),
             "optimality_ratio": ratio,
             "edges_outside_converged": outside,
             "exact_solves": exact.solves,

@@ -459,15 +459,17 @@ class Mapper:
         """χ² of every edge at the current estimate."""
         return float(np.sum(edge_chi2(self.graph()))) if self.h2o.solver.num_edges else 0.0
 
-    def optimality(self) -> tuple[float, int]:
+    def optimality(self, per_edge_chi2: Array | None = None) -> tuple[float, int]:
         """χ² of the edges in the last converged exact solution, at the current estimate, over
         that solution's χ² (1 right after it is merged; NaN before the first), and the edges
-        not in it."""
+        not in it. ``per_edge_chi2``: every edge's χ² now, when the caller has it."""
         state = self.h2o.converger.state
         outside = self.h2o.converger.outside()
         if state.converged_edges == 0:
             return math.nan, outside
-        now = float(np.sum(edge_chi2(self.graph())[: state.converged_edges]))
+        if per_edge_chi2 is None:
+            per_edge_chi2 = edge_chi2(self.graph())
+        now = float(np.sum(per_edge_chi2[: state.converged_edges]))
         # Rounding leaves ~1e-25 on a graph that fits exactly (a chain): a floor of 1e-12
         # per edge keeps that from reading as a ratio far from 1.
         floor = 1e-12 * state.converged_edges

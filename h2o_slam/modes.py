@@ -49,8 +49,8 @@ class SolveResult:
         chi2_after_idle: online mode: χ² after the idle steps that follow.
         idle_steps: online mode: idle steps run after the last arrival.
         exact: online mode: what the exact solves beside the updates did.
-        samples: online mode with ``trace_every``: ``(edges so far, χ² of those edges at
-            the estimate then)`` along the stream (see :func:`optimality_ratios`).
+        samples: online mode: ``(poses so far, χ² of their edges at the estimate then)``
+            after the callback of each pose in ``sample_nodes`` (see :func:`sample_points`).
     """
 
     R: Array

@@ -140,17 +140,11 @@ class PoseTree:
         Raises:
             ValueError: the parent pointers contain a cycle.
         """
-        tree = cls(capacity=max(len(parent), 1))
-        n = len(parent)
-        tree.n = n
-        tree.parent[:n] = parent
-        tree.depth[:n] = _depths(np.asarray(parent))
         top = parent == EARTH
         p = np.where(top, 0, parent)
         R_loc, t_loc = geo.between(R_world[p], t_world[p], R_world, t_world)
-        tree.R[:n] = np.where(top[:, None, None], R_world, R_loc)
-        tree.t[:n] = np.where(top[:, None], t_world, t_loc)
-        return tree
+        return cls.from_local(parent, np.where(top[:, None, None], R_world, R_loc),
+                              np.where(top[:, None], t_world, t_loc))
 
     @classmethod
     def from_local(cls, parent: np.ndarray, R_local: Array, t_local: Array) -> PoseTree:
