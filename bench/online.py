@@ -42,6 +42,7 @@ import argparse
 import datetime as dt
 import importlib.util
 import json
+import math
 import os
 import subprocess
 import sys
@@ -87,6 +88,9 @@ DEFAULT_BUDGETS_MS = (2.0, 5.0, 20.0)
 SAMPLES = 20
 #: ``--idle-s``: seconds the robot stands still after the last pose.
 IDLE_S = 1.0
+#: ``--period-ms``: one pose arrives every this many ms (50 Hz keyframes, five times KITTI's
+#: 10 Hz camera); 0 feeds each pose as soon as the last callback returns.
+PERIOD_MS = 20.0
 #: Gauss–Newton iterations of the exact prefix solves.
 EXACT_ITERATIONS = 100
 #: Below this χ² an optimum counts as zero (a tree of edges, fitted exactly).
@@ -249,7 +253,7 @@ def _env() -> dict[str, str]:
 
 
 def run_h2o_online(graph: PoseGraph, path: Path, out_dir: Path, budget_ms: float,
-                   timeout_s: float) -> H2OOnlineRun:
+                   timeout_s: float, period_ms: float = PERIOD_MS) -> H2OOnlineRun:
     """``h2o-solve --mode online --budget-ms budget_ms --passes 0 --idle-s 1 --samples 20`` on
     ``path`` as a subprocess; its output file is rescored on ``graph``."""
     stem = f"{path.stem}.online{budget_ms:g}ms"
@@ -258,7 +262,7 @@ def run_h2o_online(graph: PoseGraph, path: Path, out_dir: Path, budget_ms: float
     cmd = [sys.executable, "-m", "h2o_slam.cli.solve", str(path), "--output", str(out),
            "--mode", "online", "--budget-ms", f"{budget_ms:g}", "--passes", "0",
            "--idle-s", f"{IDLE_S:g}", "--samples", str(SAMPLES),
-           "--report", str(report), "--trace", str(trace)]
+           "--period-ms", f"{period_ms:g}", "--report", str(report), "--trace", str(trace)]
     start = time.perf_counter()
     try:
         proc = subprocess.run(cmd, cwd=REPO, env=_env(), capture_output=True, text=True,
@@ -466,7 +470,8 @@ def build_reference(nodes: np.ndarray, exact: np.ndarray, converged: np.ndarray,
 
 
 def bench_graph(path: Path, out_dir: Path, budgets_ms: list[float], timeout_s: float,
-                skip_isam2: bool, plots: Path | None) -> GraphOnline:
+                skip_isam2: bool, plots: Path | None,
+                period_ms: float = PERIOD_MS) -> GraphOnline:
     """Run every solver on one graph file (and plot it when ``plots`` is given)."""
     graph = read_g2o(path)
 
@@ -484,7 +489,7 @@ def bench_graph(path: Path, out_dir: Path, budgets_ms: list[float], timeout_s: f
     h2o = []
     for budget in budgets_ms:
         log(f"H₂O online at {budget:g} ms, {IDLE_S:g} s idle ...")
-        run = run_h2o_online(graph, path, out_dir, budget, timeout_s)
+        run = run_h2o_online(graph, path, out_dir, budget, timeout_s, period_ms)
         log(f"{run.label}: {run.status}; max {run.times.max:.3g} ms; χ² end of stream "
             f"{run.chi2_end_of_stream:.6g}, after idle {run.chi2_after_idle:.6g}")
         h2o.append(run)
@@ -785,18 +790,21 @@ NOTES = f"""\
 Notes:
 
 - Feed: for pose k, every edge whose newest pose is k (`h2o_slam.modes.arrivals`, the order
-  `h2o-solve --mode online` uses), one callback per pose, poses in index order.
+  `h2o-solve --mode online` uses), one callback per pose, poses in index order, pose k
+  arriving k × {{period}} ms after the first (`--period-ms`; 0: back to back). Between arrivals
+  H₂O runs budgeted idle steps, one per two budgets, as `h2o_node`'s idle timer does.
 - Sample points: `h2o_slam.modes.sample_points(graph, {SAMPLES})` ({SAMPLES} poses spread over
   the stream and up to {SAMPLES} that close a loop); a sample after pose k covers the first
   k+1 poses ("poses received") and the edges among them.
 - H₂O: `h2o-solve IN --output OUT --mode online --budget-ms B --passes 0 --idle-s {IDLE_S:g}
-  --samples {SAMPLES} --report R --trace T`, default d_max, as a subprocess; exact
-  Gauss–Newton solves run beside the budgeted updates (a worker process under a budget) and
-  are merged into the map. Callback times are the `callback_ms` of the trace (the tool's own
-  timing); mean/p99/max/overruns are computed here (p99: numpy's linear interpolation) and
-  cross-checked against the report. χ² at the samples, at the end of the stream and after
-  the {IDLE_S:g} s of budgeted idle steps come from the report; the output file is rescored
-  here as a check. "exact solves/merges/failures" is the report's `exact`.
+  --samples {SAMPLES} --period-ms {{period}} --report R --trace T`, default d_max, as a
+  subprocess; exact Gauss–Newton solves run beside the budgeted updates (a worker process
+  under a budget) and are merged into the map. Callback times are the `callback_ms` of the
+  trace (the tool's own timing); mean/p99/max/overruns are computed here (p99: numpy's
+  linear interpolation) and cross-checked against the report. χ² at the samples, at the end
+  of the stream and after the {IDLE_S:g} s of budgeted idle steps come from the report; the
+  output file is rescored here as a check. "exact solves/merges/failures" is the report's
+  `exact`.
 - GTSAM iSAM2 (same process as this script): `ISAM2(ISAM2Params())` with GTSAM's defaults
   (Gauss–Newton, relinearizeThreshold 0.1, relinearizeSkip 10, wildfire 0.001, Cholesky);
   BetweenFactorPose2/Pose3 built by bench/solvers.py from `h2o_slam.g2o.read_g2o`; a prior
@@ -831,7 +839,7 @@ Notes:
 
 
 def render_section(results: list[GraphOnline], budgets_ms: list[float],
-                   skipped: list[str]) -> str:
+                   skipped: list[str], period_ms: float = PERIOD_MS) -> str:
     """The ``## Online`` section of RESULTS.md."""
     skip = "".join(f"- skipped {s}\n" for s in skipped)
     skip = f"Graphs that could not be read:\n\n{skip}\n" if skip else ""
@@ -839,7 +847,8 @@ def render_section(results: list[GraphOnline], budgets_ms: list[float],
     return (f"{SECTION}\n\nCommand (from the repo root): `{solvers._command()}`\n\n"
             f"Date: {when}. Machine: {solvers._machine()}; 2 cores shared with other work, "
             "timings indicative.\n\n"
-            f"{format_tables(results, budgets_ms)}\n\n{skip}{NOTES}")
+            f"{format_tables(results, budgets_ms)}\n\n{skip}"
+            f"{NOTES.format(period=f'{period_ms:g}')}")
 
 
 def write_section(path: Path, section: str) -> None:
@@ -863,7 +872,8 @@ def _select(data: Path, names: list[str] | None) -> list[Path] | str:
 
 
 def run(data: Path, names: list[str] | None, budgets_ms: list[float], timeout_s: float,
-        out_dir: Path | None, skip_isam2: bool, results_path: Path, plots: Path) -> int:
+        out_dir: Path | None, skip_isam2: bool, results_path: Path, plots: Path,
+        period_ms: float = PERIOD_MS) -> int:
     """Benchmark the graphs of ``data`` (all, or ``names``); return an exit code."""
     if not data.is_dir():
         print(f"online.py: data folder {data} is missing; nothing to benchmark "
@@ -883,11 +893,11 @@ def run(data: Path, names: list[str] | None, budgets_ms: list[float], timeout_s:
         for p in paths:
             try:
                 results.append(bench_graph(p, target, budgets_ms, timeout_s, skip_isam2,
-                                           plots))
+                                           plots, period_ms))
             except H2OError as err:  # the input itself cannot be read: no solver can run
                 print(f"online.py: skipping {p.name}: {err}", file=sys.stderr)
                 skipped.append(f"{p.stem}: {err}")
-    section = render_section(results, budgets_ms, skipped)
+    section = render_section(results, budgets_ms, skipped, period_ms)
     print(section)
     write_section(results_path, section)
     print(f"written to {results_path}", file=sys.stderr)
@@ -909,6 +919,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output-dir", type=Path, default=None,
                         help="keep solved files, reports and traces here (default: a temp dir)")
     parser.add_argument("--skip-isam2", action="store_true", help="do not run GTSAM iSAM2")
+    parser.add_argument("--period-ms", type=float, default=PERIOD_MS, metavar="MS",
+                        help=f"one pose arrives every MS ms, H₂O's idle steps between "
+                             f"(default {PERIOD_MS:g}; 0: back to back)")
     parser.add_argument("--results", type=Path, default=DEFAULT_RESULTS,
                         help=f"markdown file to update (default {DEFAULT_RESULTS})")
     parser.add_argument("--plots", type=Path, default=DEFAULT_PLOTS,
@@ -916,8 +929,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if any(b <= 0 for b in args.budgets):
         parser.error("--budgets must be positive")
+    if not 0.0 <= args.period_ms < math.inf:
+        parser.error("--period-ms must be a non-negative number")
     return run(args.data, args.graphs, args.budgets, args.timeout, args.output_dir,
-               args.skip_isam2, args.results, args.plots)
+               args.skip_isam2, args.results, args.plots, args.period_ms)
 
 
 if __name__ == "__main__":

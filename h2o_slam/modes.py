@@ -48,6 +48,7 @@ class SolveResult:
         chi2_end_of_stream: online mode: χ² when the last pose's callback returned.
         chi2_after_idle: online mode: χ² after the idle steps that follow.
         idle_steps: online mode: idle steps run after the last arrival.
+        idle_steps_between: online mode, paced: idle steps run between arrivals.
         exact: online mode: what the exact solves beside the updates did.
         samples: online mode: ``(poses so far, χ² of their edges at the estimate then)``
             after the callback of each pose in ``sample_nodes`` (see :func:`sample_points`).
@@ -65,6 +66,7 @@ class SolveResult:
     chi2_end_of_stream: float | None = None
     chi2_after_idle: float | None = None
     idle_steps: int = 0
+    idle_steps_between: int = 0
     samples: list[tuple[int, float]] = field(default_factory=list)
     exact: ConvergeState | None = None
 
@@ -195,9 +197,14 @@ def solve_online(
     trace_every: int = 0,
     idle_s: float = 0.0,
     sample_nodes: Collection[int] = (),
+    period_s: float = 0.0,
 ) -> SolveResult:
     """Feed the graph pose by pose (thesis Algorithm 1), let the robot stand for ``idle_s``
     seconds, then run ``passes`` offline passes.
+
+    ``period_s`` paces the arrivals: pose ``k`` arrives ``k * period_s`` seconds after the
+    first (a robot's keyframe rate; 0: each as soon as the last callback returns, the worst
+    case). Between arrivals, idle steps run as in ``h2o_node``'s idle timer.
 
     Each arriving pose is one callback: its edges are added (AddEdge, with tree balancing)
     and one :meth:`~h2o_slam.online.OnlineH2O.step` runs in what is left of ``budget_s``
@@ -213,7 +220,8 @@ def solve_online(
     h2o = OnlineH2O(graph.planar, config, online)
     try:
         result = SolveResult(graph.R.copy(), graph.t.copy(), chi2(graph))
-        spent = _stream(h2o, graph, budget_s, trace_every, set(sample_nodes), result)
+        spent = _stream(h2o, graph, budget_s, trace_every, set(sample_nodes), result,
+                        period_s)
         result.deferred_edges = len(h2o.pending)
         result.chi2_end_of_stream = h2o.solver.chi2(graph)
         spent += _idle(h2o, budget_s, idle_s, result)
@@ -237,10 +245,14 @@ def solve_online(
 
 
 def _stream(h2o: OnlineH2O, graph: PoseGraph, budget_s: float | None, trace_every: int,
-            sample_nodes: set[int], result: SolveResult) -> float:
-    """Run every arrival's callback; returns the seconds they took."""
+            sample_nodes: set[int], result: SolveResult, period_s: float = 0.0) -> float:
+    """Run every arrival's callback (pose ``k`` at ``k * period_s``, idle steps between);
+    returns the seconds the callbacks took."""
     spent = 0.0
+    first = time.perf_counter()
     for node, edges in enumerate(arrivals(graph)):
+        if period_s > 0.0 and node > 0:
+            result.idle_steps_between += _idle_until(h2o, budget_s, first + node * period_s)
         start = time.perf_counter()
         add_arrival(h2o, graph, node, edges)
         left = None if budget_s is None else budget_s - (time.perf_counter() - start)
@@ -254,6 +266,18 @@ def _stream(h2o: OnlineH2O, graph: PoseGraph, budget_s: float | None, trace_ever
         if node in sample_nodes:
             result.samples.append((node + 1, _partial_chi2(h2o, graph)))
     return spent
+
+
+def _idle_until(h2o: OnlineH2O, budget_s: float | None, until: float) -> int:
+    """Idle steps of ``budget_s`` each, one per two budgets (as ``_idle``), while one still
+    ends before ``until``; then wait for ``until``. Returns the steps run."""
+    steps = 0
+    while budget_s is not None and time.perf_counter() + budget_s <= until:
+        h2o.step(budget_s)
+        steps += 1
+        time.sleep(max(0.0, min(budget_s, until - time.perf_counter())))
+    time.sleep(max(0.0, until - time.perf_counter()))
+    return steps
 
 
 def _idle(h2o: OnlineH2O, budget_s: float | None, idle_s: float, result: SolveResult) -> float:

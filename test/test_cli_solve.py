@@ -69,3 +69,20 @@ def test_missing_file_is_one_line(tmp_path, capsys):
     code = main([str(tmp_path / "nope.g2o"), "--output", str(tmp_path / "o.g2o")])
     err = capsys.readouterr().err.strip()
     assert code == 1 and len(err.splitlines()) == 1 and "nope.g2o" in err
+
+
+def test_period_needs_an_online_budget(planar_file, tmp_path, capsys):
+    out = tmp_path / "o.g2o"
+    code = main([str(planar_file), "--output", str(out), "--mode", "online", "--period-ms", "5"])
+    err = capsys.readouterr().err.strip()
+    assert code == 1 and len(err.splitlines()) == 1 and "--period-ms" in err
+    assert not out.exists()
+
+
+def test_paced_online_run_reports_its_period_and_idle_steps(planar_file, tmp_path):
+    out, report = tmp_path / "o.g2o", tmp_path / "r.json"
+    assert main([str(planar_file), "--output", str(out), "--mode", "online", "--budget-ms", "1",
+                 "--period-ms", "3", "--idle-s", "0", "--report", str(report)]) == 0
+    data = json.loads(report.read_text())
+    assert data["period_ms"] == 3.0
+    assert data["idle_steps_between"] > 0

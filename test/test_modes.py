@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 import scipy.sparse.linalg as spla
@@ -137,3 +139,17 @@ def test_disconnected_components_each_keep_their_gauge():
     assert result.chi2_final < 1e-12 * max(result.chi2_initial, 1.0) + 1e-9
     assert chi2(split, result.R, result.t) == pytest.approx(result.chi2_final)
     assert np.all(split.kind == EdgeKind.RELATIVE)
+
+
+def test_paced_arrivals_run_idle_steps_between_and_take_the_stream_time():
+    graph = manhattan(40, seed=3).graph
+    period_s, budget_s = 0.004, 0.001
+    start = time.perf_counter()
+    result = solve_online(graph, budget_s=budget_s, period_s=period_s)
+    took = time.perf_counter() - start
+    assert len(result.per_callback_ms) == graph.num_nodes
+    # Pose k arrives k periods after the first: the stream cannot end sooner.
+    assert took >= (graph.num_nodes - 1) * period_s
+    # A gap of four budgets holds an idle step even after a callback that used its budget.
+    assert result.idle_steps_between >= (graph.num_nodes - 1) // 2
+    assert solve_online(graph, budget_s=budget_s).idle_steps_between == 0

@@ -3,7 +3,7 @@
     h2o-solve INPUT.g2o --output OUT.g2o [--mode offline|online|exact] [--passes N]
               [--init tree|input|lago] [--solver h2o|lago] [--d-max N] [--budget-ms X]
               [--gps-batch-size N] [--gps-every K --gps-sigma S] [--report REPORT.json]
-              [--trace TRACE.json] [--idle-s S] [--samples N]
+              [--trace TRACE.json] [--idle-s S] [--samples N] [--period-ms P]
 
 The work is :func:`solve_file`; this module's ``main`` only parses arguments, prints, and maps
 errors to a one-line message and a non-zero exit code.
@@ -64,6 +64,8 @@ class SolveOptions:
             robot stops; the exact solver beside the updates finishes its work).
         samples: online mode: sample χ² of the edges so far at this many poses spread over
             the stream and as many after loop closures (0: none).
+        period_ms: online mode: one pose arrives every this many ms, with idle steps between
+            (a robot's keyframe rate); 0: each as soon as the last callback returns.
     """
 
     mode: str = "offline"
@@ -77,6 +79,7 @@ class SolveOptions:
     gps_sigma_m: float = 1.0
     idle_s: float = 1.0
     samples: int = 0
+    period_ms: float = 0.0
 
     def __post_init__(self) -> None:
         for name, value, allowed in (("solver", self.solver, SOLVERS),
@@ -97,6 +100,10 @@ class SolveOptions:
             raise InputError("--idle-s must be a non-negative number of seconds")
         if self.samples < 0:
             raise InputError("--samples must be non-negative")
+        if not 0.0 <= self.period_ms < math.inf:
+            raise InputError("--period-ms must be a non-negative number of milliseconds")
+        if self.period_ms and (self.mode != "online" or self.budget_ms is None):
+            raise InputError("--period-ms applies to --mode online with --budget-ms only")
 
 
 @dataclass
@@ -125,6 +132,8 @@ class SolveReport:
     chi2_after_idle: float | None = None
     idle_s: float | None = None
     idle_steps: int | None = None
+    period_ms: float | None = None
+    idle_steps_between: int | None = None
     exact: dict[str, Any] | None = None
     samples: list[list[float]] | None = None
 
@@ -171,6 +180,8 @@ def solve_file(
         gps_edges_added=added, converged=result.converged,
         chi2_end_of_stream=result.chi2_end_of_stream, chi2_after_idle=result.chi2_after_idle,
         idle_s=opt.idle_s if online else None, idle_steps=result.idle_steps if online else None,
+        period_ms=opt.period_ms if online else None,
+        idle_steps_between=result.idle_steps_between if online else None,
         exact=asdict(result.exact) if result.exact is not None else None,
         samples=[list(sample) for sample in result.samples] if online else None,
     )
@@ -190,7 +201,8 @@ def _solve(graph: PoseGraph, opt: SolveOptions, passes: int) -> SolveResult:
         online = OnlineConfig(d_max=opt.d_max, background=background)
         return solve_online(graph, passes, config, budget_s, online,
                             trace_every=max(1, graph.num_nodes // 200), idle_s=opt.idle_s,
-                            sample_nodes=sample_points(graph, opt.samples))
+                            sample_nodes=sample_points(graph, opt.samples),
+                            period_s=opt.period_ms / 1e3)
     return solve_exact(graph, passes, config, init=opt.init)
 
 
@@ -237,6 +249,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--samples", type=int, default=0,
                    help="online mode: sample χ² of the edges so far at N poses over the stream "
                         "and N after loop closures, into the report (default 0)")
+    p.add_argument("--period-ms", type=float, default=0.0,
+                   help="online mode with --budget-ms: one pose arrives every this many ms, "
+                        "idle steps between (a robot's keyframe rate); default 0: each pose "
+                        "as soon as the last callback returns (the worst case)")
     p.add_argument("--report", type=Path, default=None, help="write a JSON report here")
     p.add_argument("--trace", type=Path, default=None,
                    help="online mode: write per-callback times and χ² samples (JSON) here")
@@ -251,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
             mode=args.mode, passes=args.passes, init=args.init, solver=args.solver,
             d_max=args.d_max, budget_ms=args.budget_ms, gps_batch_size=args.gps_batch_size,
             gps_every=args.gps_every, gps_sigma_m=args.gps_sigma, idle_s=args.idle_s,
-            samples=args.samples,
+            samples=args.samples, period_ms=args.period_ms,
         )
         report, result = solve_file(args.input, args.output, options)
     except H2OError as err:
