@@ -49,14 +49,23 @@ from typing import Any
 import numpy as np
 from results_md import command, replace_section, revision
 
+from h2o_slam.errors import H2OError
+from h2o_slam.g2o import read_g2o, write_g2o
+from h2o_slam.graph import chi2
+from h2o_slam.modes import solve_exact
+
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_RESULTS = REPO / "bench" / "RESULTS.md"
 SECTION = "## Nodes (bench/nodes.py)"
 DEFAULT_BUDGETS_MS = (2.0, 5.0, 20.0)
 DEFAULT_LAPS = 5  # of the 36 s square: 3 minutes per budget at 1x
 ODOM_RATE_HZ = 50.0
-#: The budget the target of issue 6 is judged at.
+#: The budget the targets of issues 6 and 11 are judged at.
 TARGET_BUDGET_MS = 5.0
+#: Issue 11: the node's final map within this factor of the optimum's χ².
+MAP_TARGET = 1.05
+#: Gauss–Newton iterations of the exact solve the final map is scored against.
+EXACT_ITERATIONS = 100
 #: Seconds to wait for discovery, for the node to start and for it to drain its queues.
 START_TIMEOUT_S = 60.0
 DRAIN_TIMEOUT_S = 30.0
@@ -98,9 +107,10 @@ def _cpu_timed_node() -> Any:
 
 
 def serve_node(namespace: str, budget_ms: float, window: int, profile: Path | None,
-               cpu_file: Path | None) -> int:
+               cpu_file: Path | None, graph_file: Path | None = None) -> int:
     """Run ``H2ONode`` in a ``SingleThreadedExecutor`` until SIGINT; then write the input
-    callbacks' CPU times and the process's context switches to ``cpu_file`` (npz)."""
+    callbacks' CPU times and the process's context switches to ``cpu_file`` (npz) and the
+    node's graph at its final estimate to ``graph_file`` (g2o)."""
     import resource
 
     import rclpy
@@ -135,6 +145,8 @@ def serve_node(namespace: str, budget_ms: float, window: int, profile: Path | No
             profiler.stop()
             profile.write_text(profiler.output_text(unicode=True, color=False,
                                                     show_all=False))
+        if graph_file is not None:
+            write_g2o(graph_file, node.mapper.graph())
         if cpu_file is not None:
             usage = resource.getrusage(resource.RUSAGE_SELF)
             np.savez(cpu_file, cpu_ms=np.asarray(node.cpu_ms),
@@ -248,6 +260,14 @@ class Run:
     profile: Path | None = None
     cpu_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per input callback
     involuntary_switches: int = -1  # of the node's process
+    map_chi2: float = float("nan")  # the node's final graph at its final estimate
+    optimum_chi2: float = float("nan")  # the same graph's exact optimum
+    map_error: str = ""
+
+    @property
+    def map_ratio(self) -> float:
+        """χ² of the node's final map over the optimum of the same graph."""
+        return self.map_chi2 / self.optimum_chi2 if self.optimum_chi2 > 0 else float("nan")
 
     def handled(self, kind: str) -> tuple[int, int, int]:
         """(accepted, rejected by design, rejected otherwise) for ``odometry``, ``gps`` or
@@ -348,8 +368,11 @@ def run_budget(budget_ms: float, laps: int, seed: int, speed: float, out_dir: Pa
     monitor = Monitor(namespace)
     cpu_file = out_dir / f"{stem}.node_cpu.npz"
     cpu_file.unlink(missing_ok=True)
+    graph_file = out_dir / f"{stem}.map.g2o"
+    graph_file.unlink(missing_ok=True)
     node_role = ["--role", "node", "--namespace", namespace, "--budget", f"{budget_ms:g}",
-                 "--window", str(window), "--times", str(cpu_file)]
+                 "--window", str(window), "--times", str(cpu_file),
+                 "--graph-file", str(graph_file)]
     if prof_file is not None:
         node_role += ["--profile-file", str(prof_file)]
     node = _child(node_role, out_dir / f"{stem}.node.log")
@@ -411,7 +434,21 @@ def run_budget(budget_ms: float, laps: int, seed: int, speed: float, out_dir: Pa
     if cpu_file.exists():
         cpu = np.load(cpu_file)
         run.cpu_ms, run.involuntary_switches = cpu["cpu_ms"], int(cpu["involuntary_switches"])
+    _score_map(run, graph_file)
     return run
+
+
+def _score_map(run: Run, graph_file: Path) -> None:
+    """χ² of the node's final map and the exact optimum of the same graph, started from the
+    node's own estimate (the smaller of the two counts as the optimum)."""
+    try:
+        graph = read_g2o(graph_file)
+    except (OSError, H2OError) as err:
+        run.map_error = f"final map unreadable: {err}"
+        return
+    run.map_chi2 = chi2(graph)
+    exact = solve_exact(graph, iterations=EXACT_ITERATIONS, init="input")
+    run.optimum_chi2 = min(exact.chi2_final, run.map_chi2)
 
 
 def _drain(lines: queue.Queue[str]) -> str | None:
@@ -455,7 +492,8 @@ def format_table(runs: list[Run]) -> str:
             "overruns", "p99 ≤ budget", "CPU p50 / p99 / max ms", "CPU > budget",
             "latency p50 / p99 / max ms",
             "published odom / gps / loop", "accepted odom / gps / loop",
-            "NO_FIX (rejected by design)", "other rejected", "dropped", "load 1-min"]
+            "NO_FIX (rejected by design)", "other rejected", "dropped",
+            "map χ² / optimum", "load 1-min"]
     rows = []
     for r in runs:
         if r.status != "ok":
@@ -476,6 +514,7 @@ def format_table(runs: list[Run]) -> str:
             f"{handled['gps'][1]} of {r.published.get('gps_no_fix', 0)}",
             f"{sum(h[2] for h in handled.values())}",
             f"{sum(r.dropped(k) for k in handled)}",
+            r.map_error or f"{_f(r.map_chi2, 1)} / {_f(r.optimum_chi2, 1)} = {r.map_ratio:.4f}",
             f"{r.load[0]:.2f} → {r.load[1]:.2f}",
         ])
     lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
@@ -519,7 +558,12 @@ def verdict(runs: list[Run]) -> str:
     drops = sum(r.dropped(k) for r in ok for k in ("odometry", "gps", "loop_closure"))
     parts.append(f"no dropped messages: {'met' if drops == 0 and ok else 'NOT met'} "
                  f"({drops} dropped over {len(ok)} runs)")
-    return "Targets (issue 6): " + "; ".join(parts) + "."
+    if at:
+        ratio = at[0].map_ratio
+        met = ratio <= MAP_TARGET
+        parts.append(f"final map χ² ≤ {MAP_TARGET:g}× the optimum at {TARGET_BUDGET_MS:g} ms "
+                     f"(issue 11): {'met' if met else 'NOT met'} ({ratio:.4f})")
+    return "Targets (issues 6 and 11): " + "; ".join(parts) + "."
 
 
 NOTES = """\
@@ -552,6 +596,10 @@ Notes:
   both ways, waiting in the node's queue behind other callbacks and timers (graph
   publication each second, map→odom at 20 Hz, diagnostics), the callback itself, and the
   monitor's own executor.
+- Map: when the node stops (SIGINT after the drain), its graph at its final estimate
+  (`Mapper.graph()`) is written as g2o; "map χ² / optimum" is `h2o_slam.graph.chi2` of that
+  file over the exact optimum of the same graph (`solve_exact(graph, iterations=100,
+  init="input")`, from the node's own estimate; the smaller of the two is the optimum).
 - Counts: "published" by the publisher; "accepted" and the rejections are the node's
   `accepted …` and `rejected …` diagnostics. NO_FIX fixes are rejected by design and
   counted apart from other rejections. Dropped = published − (accepted + rejected),
@@ -631,10 +679,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--window", type=int, default=2000, help=argparse.SUPPRESS)
     parser.add_argument("--profile-file", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--times", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--graph-file", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.role == "node":
         return serve_node(args.namespace, args.budget, args.window, args.profile_file,
-                          args.times)
+                          args.times, args.graph_file)
     if args.role == "publish":
         return serve_publisher(args.namespace, args.laps, args.seed, args.speed, args.times)
     if args.laps < 1 or args.speed <= 0 or any(b <= 0 for b in args.budgets):
