@@ -145,8 +145,15 @@ def read_g2o(path: PathLike) -> PoseGraph:
         G2OFormatError: a line cannot be used (the message names file, line and reason).
         OSError: the file cannot be read.
     """
-    name = os.fspath(path)
-    data = Path(path).read_bytes()
+    return parse_g2o(os.fspath(path), Path(path).read_bytes())
+
+
+def parse_g2o(name: str, data: bytes) -> PoseGraph:
+    """:func:`read_g2o` of a file's bytes already read (``name`` is used in messages).
+
+    Raises:
+        G2OFormatError: as :func:`read_g2o`.
+    """
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as err:
@@ -472,6 +479,11 @@ def write_g2o(
         R: rotations, shape ``(N, 3, 3)``.
         t: positions in m, shape ``(N, 3)``.
     """
+    Path(path).write_text(format_g2o(graph, R, t), encoding="utf-8")
+
+
+def format_g2o(graph: PoseGraph, R: Array | None = None, t: Array | None = None) -> str:
+    """The text :func:`write_g2o` writes (same arguments, without the file)."""
     R = graph.R if R is None else np.asarray(R, dtype=float)
     t = graph.t if t is None else np.asarray(t, dtype=float)
     n = graph.num_nodes
@@ -494,7 +506,7 @@ def write_g2o(
             for k, line in zip(sel, _edge_lines(graph, kind, sel), strict=True):
                 edge_lines[k] = line
     out += edge_lines
-    Path(path).write_text("\n".join(out) + "\n", encoding="utf-8")
+    return "\n".join(out) + "\n"
 
 
 def _edge_lines(graph: PoseGraph, kind: EdgeKind, sel: np.ndarray) -> list[str]:

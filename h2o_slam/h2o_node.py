@@ -23,7 +23,6 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import fields, replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -48,7 +47,7 @@ import msg_adapters as ma
 from h2o_slam import geometry as geo
 from h2o_slam.errors import H2OError, InputError
 from h2o_slam.graph import EdgeKind, edge_chi2
-from h2o_slam.mapper import Mapper, MapperConfig
+from h2o_slam.mapper import Mapper, MapperConfig, restore
 from h2o_slam.node_main import run_node
 from h2o_slam.timing import CallbackTimes
 
@@ -204,11 +203,16 @@ class H2ONode(Node):
         )
 
     def _start_mapper(self) -> Mapper:
+        # A damaged map ends the start with one line (restore validates everything a timer
+        # would later use); a map never saved is a new graph.
         path = str(self.p("map_file"))
-        if self.p("load_map_on_start") and path and Path(path).exists():
-            mapper = Mapper.load(path, self.mapper_config())
-            self.get_logger().info(f"continuing the graph of {path}: {mapper.num_nodes} nodes")
-            return mapper
+        if self.p("load_map_on_start") and path:
+            mapper = restore(path, self.mapper_config())
+            if mapper is not None:
+                self.get_logger().info(
+                    f"continuing the graph of {path}: {mapper.num_nodes} nodes")
+                return mapper
+            self.get_logger().info(f"no map saved at {path} yet: starting a new graph")
         return Mapper(self.mapper_config())
 
     def _configured_datum(self) -> ma.Datum | None:
@@ -477,8 +481,9 @@ class H2ONode(Node):
             return response
         try:
             self.mapper.save(path)
-        except OSError as exc:
-            response.success, response.message = False, f"{path}: {exc}"
+        except (InputError, OSError) as exc:  # refused (empty, non-finite) or not writable
+            response.success, response.message = False, f"not saved: {exc}"
+            self.get_logger().warning(response.message)
             return response
         response.success = True
         response.message = f"saved {self.mapper.num_nodes} nodes to {path}"

@@ -20,7 +20,8 @@ is used) and odometry is ``(x, y, yaw)`` in ``odom``.
   nearest in time (a new keyframe at the latest odometry sample when that is nearer),
   with the antenna's lever arm removed using the current heading estimate.
 * **Saving** writes the graph as g2o plus a JSON sidecar (keyframe stamps and odometry
-  poses, the GPS datum), from which :meth:`Mapper.load` continues mapping.
+  poses, the GPS datum), crash-safely and validated on load (:mod:`h2o_slam.map_store`),
+  from which :meth:`Mapper.load` continues mapping.
 
 Every rejected input raises :class:`~h2o_slam.errors.InputError` with the reason and is
 counted in :attr:`Mapper.rejected`; nothing already in the graph changes.
@@ -28,21 +29,19 @@ counted in :attr:`Mapper.rejected`; nothing already in the graph changes.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from h2o_slam import geometry as geo
-from h2o_slam.errors import InputError
-from h2o_slam.g2o import read_g2o, write_g2o
+from h2o_slam.errors import GraphError, InputError
 from h2o_slam.graph import EARTH, EdgeKind, PoseGraph, edge_chi2
+from h2o_slam.map_store import SavedMap, has_map, load_map, save_map
 from h2o_slam.modes import add_arrival, arrivals
 from h2o_slam.online import OnlineConfig, OnlineH2O, StepReport
 from h2o_slam.solver import SolverConfig
@@ -51,8 +50,6 @@ Array = np.ndarray
 
 #: χ² with 3 degrees of freedom at 99.9 %: the default loop-closure gate.
 CHI2_3DOF_999 = 16.266
-
-SIDECAR_VERSION = 1
 
 #: Most inputs held back waiting for odometry; beyond it the oldest is dropped.
 MAX_HELD = 1000
@@ -517,26 +514,22 @@ class Mapper:
     # -- persistence --------------------------------------------------------------------------
 
     def save(self, path: str | os.PathLike[str]) -> Path:
-        """Write the graph (g2o) and its sidecar (same name, ``.json``); returns the sidecar."""
-        path = Path(path)
-        write_g2o(path, self.graph())
-        sidecar = path.with_suffix(".json")
-        data = {
-            "version": SIDECAR_VERSION,
-            "stamps_ns": self.keyframes.stamps,
-            "odom": [p.tolist() for p in self.keyframes.odom],
-            "chain_cov": [c.tolist() for c in self.keyframes.chain_cov],
+        """Write the map crash-safely (g2o plus a JSON sidecar of the same name, replaced
+        together: :mod:`h2o_slam.map_store`); returns the sidecar.
+
+        Raises:
+            MapStoreError: an empty or non-finite graph (the saved map is kept), or files
+                that cannot be written.
+        """
+        return save_map(path, SavedMap(
+            graph=self.graph(),
+            stamps_ns=np.asarray(self.keyframes.stamps, dtype=np.int64),
+            odom=np.asarray(self.keyframes.odom, dtype=float).reshape(-1, 3),
+            chain_cov=np.asarray(self.keyframes.chain_cov, dtype=float).reshape(-1, 3, 3),
             # The odometry track carries stamped loop closures onto keyframes after a
             # restore too (about 1 MB per 10 minutes at 50 Hz).
-            "track_stamps_ns": self.track.stamps().tolist(),
-            "track_poses": self.track.poses().tolist(),
-            "datum": self.datum,
-            "config": asdict(self.config),
-        }
-        tmp = sidecar.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(data, allow_nan=True))
-        tmp.replace(sidecar)
-        return sidecar
+            track_stamps_ns=self.track.stamps(), track_poses=self.track.poses(),
+            datum=self.datum, config=asdict(self.config)))
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], config: MapperConfig | None = None,
@@ -545,42 +538,41 @@ class Mapper:
         newest keyframe through the odometry increment since then.
 
         Raises:
-            InputError: a missing or inconsistent sidecar; G2OFormatError for the g2o file.
+            InputError: a missing, damaged or inconsistent map, with one line naming the
+                file, the field and the reason (:func:`h2o_slam.map_store.load_map`).
         """
-        path = Path(path)
-        graph = read_g2o(path)
-        meta = _read_sidecar(path.with_suffix(".json"), graph.num_nodes)
+        saved = load_map(path)  # validated before any solver (or worker) exists
+        graph = saved.graph
         mapper = cls(config, solver)
-        for node, edges in enumerate(arrivals(graph)):
-            add_arrival(mapper.h2o, graph, node, edges)
-        _set_estimate(mapper.h2o, graph.R, graph.t)
-        kf = mapper.keyframes
-        kf.stamps = [int(s) for s in meta["stamps_ns"]]
-        kf.odom = [np.asarray(p, dtype=float) for p in meta["odom"]]
-        kf.chain_cov = [np.asarray(c, dtype=float) for c in meta["chain_cov"]]
-        for stamp, pose in zip(meta.get("track_stamps_ns", []), meta.get("track_poses", []),
-                               strict=True):
-            mapper.track.append(int(stamp), np.asarray(pose, dtype=float))
-        datum = meta.get("datum")
-        mapper.datum = None if datum is None else (float(datum[0]), float(datum[1]),
-                                                   float(datum[2]))
-        mapper.continue_from = graph.num_nodes - 1 if graph.num_nodes else None
+        try:
+            for node, edges in enumerate(arrivals(graph)):
+                add_arrival(mapper.h2o, graph, node, edges)
+            _set_estimate(mapper.h2o, graph.R, graph.t)
+            kf = mapper.keyframes
+            kf.stamps = [int(s) for s in saved.stamps_ns]
+            kf.odom = [p.copy() for p in saved.odom]
+            kf.chain_cov = [c.copy() for c in saved.chain_cov]
+            for stamp, pose in zip(saved.track_stamps_ns, saved.track_poses, strict=True):
+                mapper.track.append(int(stamp), pose)
+            mapper.datum = saved.datum
+            mapper.continue_from = graph.num_nodes - 1
+            if not (np.all(np.isfinite(mapper.poses())) and math.isfinite(mapper.chi2())):
+                raise InputError("the rebuilt estimate is not finite")
+        except (InputError, GraphError, ValueError, np.linalg.LinAlgError) as exc:
+            mapper.close()
+            raise InputError(f"{os.fspath(path)}: graph: cannot be rebuilt: {exc}") from None
         return mapper
 
 
-def _read_sidecar(path: Path, num_nodes: int) -> dict[str, Any]:
-    try:
-        meta = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: cannot read the graph's sidecar ({exc})") from None
-    if meta.get("version") != SIDECAR_VERSION:
-        raise InputError(f"{path}: sidecar version {meta.get('version')!r}, "
-                         f"expected {SIDECAR_VERSION}")
-    for key in ("stamps_ns", "odom", "chain_cov"):
-        if len(meta.get(key, ())) != num_nodes:
-            raise InputError(f"{path}: {key} has {len(meta.get(key, ()))} entries for "
-                             f"{num_nodes} graph nodes")
-    return dict(meta)
+def restore(path: str | os.PathLike[str], config: MapperConfig | None = None,
+            solver: SolverConfig | None = None) -> Mapper | None:
+    """The map ``h2o_node`` continues with ``load_map_on_start``: ``None`` when nothing was
+    ever saved at ``path``.
+
+    Raises:
+        InputError: as :meth:`Mapper.load` (a damaged map is never replaced by a new one).
+    """
+    return Mapper.load(path, config, solver) if has_map(path) else None
 
 
 def _set_estimate(h2o: OnlineH2O, R_world: Array, t_world: Array) -> None:
