@@ -236,12 +236,22 @@ class SharedArrays:
         return self.arrays[name]
 
 
-def _layout(capacity: int) -> dict[str, tuple[tuple[int, ...], Any]]:
+def _layout(capacity: int, edge_capacity: int, p: int) -> dict[str, tuple[tuple[int, ...], Any]]:
     return {
         "parent": ((capacity,), np.int64),
         "R": ((capacity, 3, 3), np.float64), "t": ((capacity, 3), np.float64),
         "R_out": ((capacity, 3, 3), np.float64), "t_out": ((capacity, 3), np.float64),
+        "kind": ((edge_capacity,), np.int64), "a": ((edge_capacity,), np.int64),
+        "b": ((edge_capacity,), np.int64), "meas_R": ((edge_capacity, 3, 3), np.float64),
+        "meas_t": ((edge_capacity, 3), np.float64), "info": ((edge_capacity, p, p), np.float64),
     }
+
+
+def _edge_rows(shared: SharedArrays, first: int, end: int) -> EdgeRows:
+    """Edges ``first … end-1`` as the live side wrote them into ``shared`` (views)."""
+    s = slice(first, end)
+    return EdgeRows(first, shared["kind"][s], shared["a"][s], shared["b"][s],
+                    shared["meas_R"][s], shared["meas_t"][s], shared["info"][s])
 
 
 def _worker_main(conn: Connection, reply: Connection) -> None:
@@ -263,10 +273,10 @@ def _worker_main(conn: Connection, reply: Connection) -> None:
             return  # the live side is gone
         if message is None:
             return
-        rows, path, capacity, n, edges, generation, iterations = message
+        path, layout, n, edges, generation, iterations = message
         if shared is None or str(shared.path) != path:
-            shared = SharedArrays(Path(path), _layout(capacity), create=False)
-        problem.add_edges(rows)
+            shared = SharedArrays(Path(path), _layout(*layout), create=False)
+        problem.add_edges(_edge_rows(shared, problem.solver.num_edges, edges))
         sol = problem.solve(shared["parent"][:n].copy(), shared["R"][:n].copy(),
                             shared["t"][:n].copy(), edges, generation, iterations)
         if not sol.error:
@@ -282,7 +292,13 @@ def _worker_main(conn: Connection, reply: Connection) -> None:
 class WorkerProcess:
     """A worker process solving snapshots; every call returns at once."""
 
-    def __init__(self, planar: bool, config: SolverConfig | None) -> None:
+    #: Nodes and edges the first shared file holds. Its pages are only touched as the map
+    #: grows, so a large file costs nothing up front, and a robot rarely pays for the copy
+    #: into a larger one (page faults on a fresh file: about 1 ms per 10k nodes).
+    FIRST_CAPACITY = 1 << 16
+
+    def __init__(self, planar: bool, config: SolverConfig | None, info_dim: int) -> None:
+        self._info_dim = info_dim
         # A fresh interpreter running this module: forking a process that holds DDS threads
         # is unsafe, and multiprocessing's spawn would re-run the user's main script.
         child_in, to_child = os.pipe()
@@ -299,6 +315,7 @@ class WorkerProcess:
         self._conn = Connection(to_child, readable=False)
         self._reply = Connection(to_parent, writable=False)
         self._conn.send((planar, config))
+        self._shape = (0, 0, info_dim)
         self._dir = Path(tempfile.mkdtemp(prefix="h2o-exact-", dir=_shm_dir()))
         self._finalizer = weakref.finalize(self, _shutdown, self._conn, self._reply,
                                            self._process, self._dir)
@@ -306,24 +323,27 @@ class WorkerProcess:
         self._serial = 0
         self.busy = False
 
-    def ensure_capacity(self, n: int) -> SharedArrays:
-        """Arrays for at least ``n`` nodes (a new, doubled file when they outgrow it)."""
-        if self.shared is None or len(self.shared["parent"]) < n:
-            capacity = max(1024, 2 * n)
-            self._serial += 1
-            old = self.shared
-            self.shared = SharedArrays(self._dir / f"snapshot{self._serial}.bin",
-                                       _layout(capacity), create=True)
-            if old is not None:
-                old.path.unlink(missing_ok=True)  # the worker's mapping stays valid
-        return self.shared
+    def ensure_capacity(self, n: int, m: int) -> bool:
+        """Arrays for at least ``n`` nodes and ``m`` edges (a new file, doubled, when they
+        outgrow it); True when a new file was made (its edges must all be written again)."""
+        shared = self.shared
+        if shared is not None and len(shared["parent"]) >= n and len(shared["kind"]) >= m:
+            return False
+        capacity = max(self.FIRST_CAPACITY, 2 * n)
+        edge_capacity = max(2 * self.FIRST_CAPACITY, 2 * m)
+        self._serial += 1
+        self._shape = (capacity, edge_capacity, self._info_dim)
+        self.shared = SharedArrays(self._dir / f"snapshot{self._serial}.bin",
+                                   _layout(*self._shape), create=True)
+        if shared is not None:
+            shared.path.unlink(missing_ok=True)  # the worker's mapping stays valid
+        return True
 
-    def submit(self, rows: EdgeRows, n: int, edges: int, generation: int,
-               iterations: int) -> None:
-        """Start solving the snapshot already written to :attr:`shared`."""
+    def submit(self, n: int, edges: int, generation: int, iterations: int) -> None:
+        """Start solving the snapshot and edges already written to :attr:`shared`: only a
+        small message goes through the pipe, so sending never waits for the worker."""
         assert self.shared is not None and not self.busy
-        capacity = len(self.shared["parent"])
-        self._conn.send((rows, str(self.shared.path), capacity, n, edges, generation,
+        self._conn.send((str(self.shared.path), self._shape, n, edges, generation,
                          iterations))
         self.busy = True
 
@@ -441,15 +461,16 @@ class Converger:
         self._inline = ExactProblem(solver.planar, solver.config)
         self._worker: WorkerProcess | None = None
         if background == "process":
-            self._worker = WorkerProcess(solver.planar, solver.config)
+            self._worker = WorkerProcess(solver.planar, solver.config, solver.info.shape[-1])
         self._sent = 0  # edges the worker holds
         self._failed_at = -1  # edges when the last solve failed: retried once more arrive
         self._merging: Solution | None = None
         self._cursor = 0
-        # Seconds: a whole inline solve by edges; a merge and a snapshot copy by nodes.
+        # Seconds: a whole inline solve by edges; a merge by nodes; a snapshot by nodes and
+        # new edges (memory copies: measured 5 ns a node on 10k nodes).
         self.inline_cost = CostModel((2e-3, 5e-5), (1000.0,))
         self.merge_cost = CostModel((2e-5, 2e-7), (1000.0,))
-        self.copy_cost = CostModel((1e-4, 2e-7), (1000.0,))
+        self.copy_cost = CostModel((5e-5, 2e-8, 1e-7), (1000.0, 100.0))
 
     @property
     def enabled(self) -> bool:
@@ -518,21 +539,33 @@ class Converger:
         self._received(sol)
 
     def _dispatch(self, deadline: float, clock: Any, safety: float) -> None:
-        assert self._worker is not None
-        n = self.solver.num_nodes
-        if self.copy_cost.predict(n) * self.copy_cost.margin(safety) > deadline - clock():
+        worker = self._worker
+        assert worker is not None
+        n, m = self.solver.num_nodes, self.solver.num_edges
+        new = m - self._sent
+        if self.copy_cost.predict(n, new) * self.copy_cost.margin(safety) > deadline - clock():
             return
+        # A fresh file's first touches fault its pages in: no sample for the model.
+        fresh = worker.ensure_capacity(n, m)
         begin = clock()
-        shared = self._worker.ensure_capacity(n)
+        shared = worker.shared
+        assert shared is not None
         parent, R, t = self._snapshot()
         shared["parent"][:n], shared["R"][:n], shared["t"][:n] = parent, R, t
-        rows = EdgeRows.of(self.solver, self._sent)
+        self._write_edges(worker, self._sent, m)
         # A few iterations per job: each answer is merged as it comes (the map improves
         # while the robot drives) and the next job takes in the edges that arrived meanwhile.
-        self._worker.submit(rows, n, self.solver.num_edges, self.generation,
-                            min(self.iterations, self.job_iterations))
-        self._sent = self.solver.num_edges
-        self.copy_cost.update(clock() - begin, n)
+        worker.submit(n, m, self.generation, min(self.iterations, self.job_iterations))
+        self._sent = m
+        if not fresh:
+            self.copy_cost.update(clock() - begin, n, new)
+
+    def _write_edges(self, worker: WorkerProcess, lo: int, hi: int) -> None:
+        shared, solver = worker.shared, self.solver
+        assert shared is not None
+        s = slice(lo, hi)
+        for name in ("kind", "a", "b", "meas_R", "meas_t", "info"):
+            shared[name][s] = getattr(solver, name)[s]
 
     def _collect(self) -> None:
         if self._worker is None:
@@ -548,7 +581,8 @@ class Converger:
         elif not self._worker.alive:
             # Started again; the new worker holds no edges yet.
             self._worker.close()
-            self._worker = WorkerProcess(self.solver.planar, self.solver.config)
+            self._worker = WorkerProcess(self.solver.planar, self.solver.config,
+                                         self.solver.info.shape[-1])
             self._sent = 0
         self._received(sol)
 
