@@ -463,6 +463,7 @@ class Converger:
         if background == "process":
             self._worker = WorkerProcess(solver.planar, solver.config, solver.info.shape[-1])
         self._sent = 0  # edges the worker holds
+        self._written = 0  # edges written to the worker's shared file
         self._failed_at = -1  # edges when the last solve failed: retried once more arrive
         self._merging: Solution | None = None
         self._cursor = 0
@@ -470,7 +471,7 @@ class Converger:
         # new edges (memory copies: measured 5 ns a node on 10k nodes).
         self.inline_cost = CostModel((2e-3, 5e-5), (1000.0,))
         self.merge_cost = CostModel((2e-5, 2e-7), (1000.0,))
-        self.copy_cost = CostModel((5e-5, 2e-8, 1e-7), (1000.0, 100.0))
+        self.copy_cost = CostModel((5e-5, 2e-8), (1000.0,))
 
     @property
     def enabled(self) -> bool:
@@ -497,6 +498,7 @@ class Converger:
         if not self.enabled:
             return None
         self._collect()
+        self._stream_edges()
         if self._merging is None and not self.busy and self._wanted(unlimited, idle):
             if unlimited or self._inline_fits(deadline - clock(), safety, idle):
                 self._solve_inline(clock)
@@ -538,34 +540,50 @@ class Converger:
         self.inline_cost.update(clock() - begin, self.solver.num_edges)
         self._received(sol)
 
+    #: Most edges one step writes to the worker's file (a few hundred microseconds): new
+    #: edges stream there as they arrive, so a snapshot only copies the tree.
+    STREAM_CHUNK = 1024
+
+    def _stream_edges(self) -> None:
+        worker = self._worker
+        m = self.solver.num_edges
+        if worker is None or self._written >= m:
+            return
+        # A new file only between jobs: a running job and a merge read the current one.
+        if not self.busy and worker.ensure_capacity(self.solver.num_nodes, m):
+            self._written = self._sent  # the worker holds the older edges
+        shared = worker.shared
+        if shared is None:
+            return
+        hi = min(m, self._written + self.STREAM_CHUNK, len(shared["kind"]))
+        s = slice(self._written, hi)
+        for name in ("kind", "a", "b", "meas_R", "meas_t", "info"):
+            shared[name][s] = getattr(self.solver, name)[s]
+        self._written = hi
+
     def _dispatch(self, deadline: float, clock: Any, safety: float) -> None:
         worker = self._worker
         assert worker is not None
         n, m = self.solver.num_nodes, self.solver.num_edges
-        new = m - self._sent
-        if self.copy_cost.predict(n, new) * self.copy_cost.margin(safety) > deadline - clock():
+        if self._written < m:
+            return  # the backlog of a new file or a restarted worker streams first
+        if self.copy_cost.predict(n) * self.copy_cost.margin(safety) > deadline - clock():
             return
         # A fresh file's first touches fault its pages in: no sample for the model.
         fresh = worker.ensure_capacity(n, m)
+        if fresh:
+            self._written = self._sent
+            return
         begin = clock()
         shared = worker.shared
         assert shared is not None
         parent, R, t = self._snapshot()
         shared["parent"][:n], shared["R"][:n], shared["t"][:n] = parent, R, t
-        self._write_edges(worker, self._sent, m)
         # A few iterations per job: each answer is merged as it comes (the map improves
         # while the robot drives) and the next job takes in the edges that arrived meanwhile.
         worker.submit(n, m, self.generation, min(self.iterations, self.job_iterations))
         self._sent = m
-        if not fresh:
-            self.copy_cost.update(clock() - begin, n, new)
-
-    def _write_edges(self, worker: WorkerProcess, lo: int, hi: int) -> None:
-        shared, solver = worker.shared, self.solver
-        assert shared is not None
-        s = slice(lo, hi)
-        for name in ("kind", "a", "b", "meas_R", "meas_t", "info"):
-            shared[name][s] = getattr(solver, name)[s]
+        self.copy_cost.update(clock() - begin, n)
 
     def _collect(self) -> None:
         if self._worker is None:
@@ -583,7 +601,7 @@ class Converger:
             self._worker.close()
             self._worker = WorkerProcess(self.solver.planar, self.solver.config,
                                          self.solver.info.shape[-1])
-            self._sent = 0
+            self._sent = self._written = 0
         self._received(sol)
 
     def _received(self, sol: Solution) -> None:
