@@ -22,6 +22,8 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from h2o_slam.compiled import kernel
+
 Array = NDArray[np.float64]
 
 #: Indices of (x, y, yaw) in the 6-D tangent / error vector.
@@ -46,15 +48,8 @@ def hat(v: Array) -> Array:
 def so3_exp(w: Array) -> Array:
     """Rotation matrices ``Exp(w)`` of rotation vectors ``w`` with shape ``(..., 3)``."""
     w = np.asarray(w, dtype=float)
-    theta2 = np.einsum("...i,...i->...", w, w)
-    theta = np.sqrt(theta2)
-    small = theta < _SMALL_ANGLE
-    safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
-    k = hat(w)
-    eye = np.broadcast_to(np.eye(3), k.shape)
-    return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
+    flat = np.ascontiguousarray(w.reshape(-1, 3))
+    return np.asarray(_so3_exp_many(flat)).reshape(w.shape[:-1] + (3, 3))
 
 
 def so3_log(R: Array) -> Array:
@@ -64,76 +59,15 @@ def so3_log(R: Array) -> Array:
     precision.
     """
     R = np.asarray(R, dtype=float)
-    trace = np.einsum("...ii->...", R)
-    cos = np.clip((trace - 1.0) / 2.0, -1.0, 1.0)
-    vee = np.stack(
-        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]],
-        axis=-1,
-    )
-    sin = 0.5 * np.linalg.norm(vee, axis=-1)
-    theta = np.arctan2(sin, cos)
-    small = theta < _SMALL_ANGLE
-    scale = np.where(small, 0.5 + theta**2 / 12.0, theta / (2.0 * np.where(small, 1.0, sin)))
-    out = scale[..., None] * vee
-    near_pi = cos < -0.99
-    if np.any(near_pi):
-        out[near_pi] = _log_near_pi(R[near_pi], theta[near_pi], vee[near_pi])
-    return out
-
-
-def _log_near_pi(R: Array, theta: Array, vee: Array) -> Array:
-    # Near π, sin θ → 0 and the antisymmetric part carries no axis; take the axis from the
-    # symmetric part R + Rᵀ = 2 cos θ I + 2 (1 - cos θ) n nᵀ and its sign from vee.
-    cos = np.cos(theta)
-    sym = (R + np.swapaxes(R, -1, -2)) / 2.0 - cos[:, None, None] * np.eye(3)
-    sym /= (1.0 - cos)[:, None, None]
-    col = np.argmax(np.einsum("nii->ni", sym), axis=-1)
-    axis = sym[np.arange(len(R)), :, col]
-    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
-    sign = np.where(np.einsum("ni,ni->n", axis, vee) < 0.0, -1.0, 1.0)
-    return (sign * theta)[:, None] * axis
+    flat = np.ascontiguousarray(R.reshape(-1, 3, 3))
+    return np.asarray(_so3_log_many(flat)).reshape(R.shape[:-2] + (3,))
 
 
 def so3_right_jacobian_inv(w: Array) -> Array:
     """Inverse right Jacobian of SO(3): ``Log(Exp(w) Exp(δ)) ≈ w + J_r⁻¹(w) δ``."""
     w = np.asarray(w, dtype=float)
-    theta2 = np.einsum("...i,...i->...", w, w)
-    theta = np.sqrt(theta2)
-    small = theta < 1e-4
-    safe = np.where(small, 1.0, theta)
-    coef = np.where(
-        small,
-        1.0 / 12.0 + theta2 / 720.0,
-        1.0 / safe**2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(np.where(small, 1.0, safe))),
-    )
-    k = hat(w)
-    eye = np.broadcast_to(np.eye(3), k.shape)
-    return eye + 0.5 * k + coef[..., None, None] * (k @ k)
-
-
-def so3_log_one(R: Array) -> Array:
-    """:func:`so3_log` of a single ``(3, 3)`` matrix, with less per-call overhead."""
-    cos = min(1.0, max(-1.0, (R[0, 0] + R[1, 1] + R[2, 2] - 1.0) / 2.0))
-    vee = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if cos < -0.99:
-        return so3_log(R)
-    sin = 0.5 * math.sqrt(vee[0] ** 2 + vee[1] ** 2 + vee[2] ** 2)
-    theta = math.atan2(sin, cos)
-    if theta < _SMALL_ANGLE:
-        return (0.5 + theta**2 / 12.0) * vee
-    return (theta / (2.0 * sin)) * vee
-
-
-def so3_right_jacobian_inv_one(w: Array) -> Array:
-    """:func:`so3_right_jacobian_inv` of a single rotation vector ``(3,)``."""
-    theta2 = float(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
-    theta = math.sqrt(theta2)
-    if theta < 1e-4:
-        coef = 1.0 / 12.0 + theta2 / 720.0
-    else:
-        coef = 1.0 / theta2 - (1.0 + math.cos(theta)) / (2.0 * theta * math.sin(theta))
-    k = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    return np.eye(3) + 0.5 * k + coef * (k @ k)
+    flat = np.ascontiguousarray(w.reshape(-1, 3))
+    return np.asarray(_right_jacobian_inv_many(flat)).reshape(w.shape[:-1] + (3, 3))
 
 
 def renormalize(R: Array) -> Array:
@@ -144,8 +78,172 @@ def renormalize(R: Array) -> Array:
     recomposed from drifted matrices drifts faster, so every update that rebuilds local
     rotations from products applies this.
     """
-    gram = np.swapaxes(R, -1, -2) @ R
-    return R @ (1.5 * np.eye(3) - 0.5 * gram)
+    R = np.asarray(R, dtype=float)
+    flat = np.ascontiguousarray(R.reshape(-1, 3, 3))
+    return np.asarray(_renormalize_many(flat)).reshape(R.shape)
+
+
+# -- compiled kernels: one rotation or pose each; the functions above loop over them ------
+
+
+@kernel
+def mul3(A: Array, B: Array) -> Array:
+    """``A B`` of two 3×3 matrices."""
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+    return out
+
+
+@kernel
+def mul3t(A: Array, B: Array) -> Array:
+    """``Aᵀ B`` of two 3×3 matrices."""
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[0, i] * B[0, j] + A[1, i] * B[1, j] + A[2, i] * B[2, j]
+    return out
+
+
+@kernel
+def mulv3(A: Array, v: Array) -> Array:
+    """``A v`` of a 3×3 matrix and a 3-vector."""
+    out = np.empty(3)
+    for i in range(3):
+        out[i] = A[i, 0] * v[0] + A[i, 1] * v[1] + A[i, 2] * v[2]
+    return out
+
+
+@kernel
+def mulv3t(A: Array, v: Array) -> Array:
+    """``Aᵀ v`` of a 3×3 matrix and a 3-vector."""
+    out = np.empty(3)
+    for i in range(3):
+        out[i] = A[0, i] * v[0] + A[1, i] * v[1] + A[2, i] * v[2]
+    return out
+
+
+@kernel
+def hat_one(v: Array) -> Array:
+    """``[v]×`` of one 3-vector."""
+    out = np.zeros((3, 3))
+    out[0, 1] = -v[2]
+    out[0, 2] = v[1]
+    out[1, 0] = v[2]
+    out[1, 2] = -v[0]
+    out[2, 0] = -v[1]
+    out[2, 1] = v[0]
+    return out
+
+
+@kernel
+def so3_exp_one(w: Array) -> Array:
+    """``Exp(w)`` of one rotation vector ``(3,)`` (Rodrigues)."""
+    theta2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    theta = math.sqrt(theta2)
+    if theta < _SMALL_ANGLE:
+        a = 1.0 - theta2 / 6.0
+        b = 0.5 - theta2 / 24.0
+    else:
+        a = math.sin(theta) / theta
+        b = (1.0 - math.cos(theta)) / (theta * theta)
+    k = hat_one(w)
+    kk = mul3(k, k)
+    out = a * k + b * kk
+    for i in range(3):
+        out[i, i] += 1.0
+    return out
+
+
+@kernel
+def so3_log_one(R: Array) -> Array:
+    """``Log(R)`` of one rotation matrix, norm in ``[0, π]``; near π the axis comes from the
+    symmetric part ``R + Rᵀ = 2 cos θ I + 2 (1 − cos θ) n nᵀ`` and its sign from the
+    antisymmetric part, which alone carries no axis there."""
+    cos = min(1.0, max(-1.0, (R[0, 0] + R[1, 1] + R[2, 2] - 1.0) / 2.0))
+    vee = np.empty(3)
+    vee[0] = R[2, 1] - R[1, 2]
+    vee[1] = R[0, 2] - R[2, 0]
+    vee[2] = R[1, 0] - R[0, 1]
+    sin = 0.5 * math.sqrt(vee[0] * vee[0] + vee[1] * vee[1] + vee[2] * vee[2])
+    theta = math.atan2(sin, cos)
+    if cos < -0.99:
+        c = math.cos(theta)
+        best = 0
+        diag = np.empty(3)
+        for i in range(3):
+            diag[i] = (R[i, i] - c) / (1.0 - c)
+            if diag[i] > diag[best]:
+                best = i
+        axis = np.empty(3)
+        for i in range(3):
+            sym = (R[i, best] + R[best, i]) / 2.0 - (c if i == best else 0.0)
+            axis[i] = sym / (1.0 - c)
+        norm = math.sqrt(axis[0] ** 2 + axis[1] ** 2 + axis[2] ** 2)
+        dot = axis[0] * vee[0] + axis[1] * vee[1] + axis[2] * vee[2]
+        sign = -1.0 if dot < 0.0 else 1.0
+        return (sign * theta / norm) * axis
+    if theta < _SMALL_ANGLE:
+        return (0.5 + theta**2 / 12.0) * vee
+    return (theta / (2.0 * sin)) * vee
+
+
+@kernel
+def so3_right_jacobian_inv_one(w: Array) -> Array:
+    """:func:`so3_right_jacobian_inv` of one rotation vector ``(3,)``."""
+    theta2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    theta = math.sqrt(theta2)
+    if theta < 1e-4:
+        coef = 1.0 / 12.0 + theta2 / 720.0
+    else:
+        coef = 1.0 / (theta * theta) - (1.0 + math.cos(theta)) / (2.0 * theta * math.sin(theta))
+    k = hat_one(w)
+    out = 0.5 * k + coef * mul3(k, k)
+    for i in range(3):
+        out[i, i] += 1.0
+    return out
+
+
+@kernel
+def renormalize_one(R: Array) -> Array:
+    """:func:`renormalize` of one matrix."""
+    corr = -0.5 * mul3t(R, R)
+    for i in range(3):
+        corr[i, i] += 1.5
+    return mul3(R, corr)
+
+
+@kernel
+def _so3_exp_many(w: Array) -> Array:
+    out = np.empty((len(w), 3, 3))
+    for i in range(len(w)):
+        out[i] = so3_exp_one(w[i])
+    return out
+
+
+@kernel
+def _so3_log_many(R: Array) -> Array:
+    out = np.empty((len(R), 3))
+    for i in range(len(R)):
+        out[i] = so3_log_one(R[i])
+    return out
+
+
+@kernel
+def _right_jacobian_inv_many(w: Array) -> Array:
+    out = np.empty((len(w), 3, 3))
+    for i in range(len(w)):
+        out[i] = so3_right_jacobian_inv_one(w[i])
+    return out
+
+
+@kernel
+def _renormalize_many(R: Array) -> Array:
+    out = np.empty_like(R)
+    for i in range(len(R)):
+        out[i] = renormalize_one(R[i])
+    return out
 
 
 def orthonormalize(R: Array) -> Array:

@@ -13,8 +13,9 @@ after the previous kept node (or after the root) down to ``s``. Three pieces liv
   segment, weighted by the compliance ``1 / diag(B)`` so that stiff nodes move less, keeping
   the path continuous.
 
-Segments are processed together as padded ``(length, segments, …)`` arrays so that the work
-is a few batched numpy operations rather than a Python loop per segment.
+The per-node work is compiled (:mod:`h2o_slam.compiled`): one pass of 3×3 products along
+each segment, O(d) in the domain with a small constant, so that the interpolated update
+costs the O(``d_max``) solve plus cheap compositions.
 """
 
 from __future__ import annotations
@@ -24,8 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from h2o_slam import geometry as geo
+from h2o_slam.compiled import kernel
 from h2o_slam.geometry import Array
-from h2o_slam.jacobians import chain_jacobians, endpoint_jacobians
+from h2o_slam.jacobians import chain_jacobian_one, endpoint_jacobians_one
 
 
 @dataclass(frozen=True)
@@ -77,20 +79,6 @@ def _even(length: int, k: int, offset: int) -> tuple[np.ndarray, np.ndarray]:
     return kept + offset, start + offset
 
 
-def _padded(values: Array, sel: Selection, fill: Array) -> tuple[Array, np.ndarray]:
-    """Gather per-segment values into ``(max_len, k, …)``, padding after each segment's end.
-
-    Returns the padded array and the valid mask ``(max_len, k)``.
-    """
-    lengths = sel.lengths
-    max_len = int(lengths.max())
-    offsets = np.arange(max_len)[:, None]
-    valid = offsets < lengths[None, :]
-    idx = np.where(valid, sel.start[None, :] + offsets, 0)
-    out = np.where(valid.reshape(valid.shape + (1,) * (values.ndim - 1)), values[idx], fill)
-    return out, valid
-
-
 def merge_segments(
     sel: Selection, k_R: Array, k_t: Array, S: Array
 ) -> tuple[Array, Array, Array]:
@@ -107,19 +95,129 @@ def merge_segments(
         kept node, and ``S_β = Σᵢ Rᵢₛᵀ Sᵢ Rᵢₛ`` with ``Rᵢₛ`` the desired rotation from node
         ``i`` to the kept node ``s``, applied to the translation and rotation blocks alike.
     """
-    R, valid = _padded(k_R, sel, np.eye(3))
-    t, _ = _padded(k_t, sel, np.zeros(3))
-    Sp, _ = _padded(S, sel, np.zeros((6, 6)))
-    P_R, P_t = geo.cumulative_compose(R, t)
-    last = sel.lengths - 1
-    cols = np.arange(len(last))
-    R_beta, t_beta = P_R[last, cols], P_t[last, cols]
-    R_is = np.swapaxes(P_R, -1, -2) @ R_beta[None]
-    rot = np.zeros(R_is.shape[:2] + (6, 6))
-    rot[..., :3, :3] = R_is
-    rot[..., 3:, 3:] = R_is
-    S_beta = np.sum(np.swapaxes(rot, -1, -2) @ Sp @ rot * valid[..., None, None], axis=0)
+    def c(a: Array) -> Array:
+        return np.ascontiguousarray(a, dtype=float)
+
+    return _merge_segments(sel.kept, sel.start, c(k_R), c(k_t), c(S))
+
+
+@kernel
+def _merge_segments(
+    kept: np.ndarray, start: np.ndarray, k_R: Array, k_t: Array, S: Array
+) -> tuple[Array, Array, Array]:
+    k = len(kept)
+    R_beta = np.empty((k, 3, 3))
+    t_beta = np.empty((k, 3))
+    S_beta = np.zeros((k, 6, 6))
+    for j in range(k):
+        length = kept[j] - start[j] + 1
+        P_R = np.empty((length, 3, 3))
+        R = np.eye(3)
+        t = np.zeros(3)
+        for i in range(length):
+            pos = start[j] + i
+            t = t + geo.mulv3(R, k_t[pos])
+            R = geo.mul3(R, k_R[pos])
+            P_R[i] = R
+        R_beta[j] = R
+        t_beta[j] = t
+        for i in range(length):
+            Q = geo.mul3t(P_R[i], R)
+            Si = S[start[j] + i]
+            for a in range(2):
+                for b in range(2):
+                    block = geo.mul3t(Q, geo.mul3(np.ascontiguousarray(
+                        Si[3 * a:3 * a + 3, 3 * b:3 * b + 3]), Q))
+                    S_beta[j, 3 * a:3 * a + 3, 3 * b:3 * b + 3] += block
     return R_beta, t_beta, S_beta
+
+
+@kernel
+def tree_edge_constraints(
+    domain: np.ndarray, tree_edge: np.ndarray, forward: np.ndarray, meas_R: Array,
+    meas_t: Array, info: Array,
+) -> tuple[Array, Array, Array, np.ndarray]:
+    """Desired transform (parent → node) and stiffness (in the node's error coordinates) of
+    each domain node's tree edge, and whether the node is a subtree top (no tree edge:
+    identity, zero stiffness).
+
+    A tree edge measured node → parent is inverted, and its stiffness, which lives in the
+    parent's frame, turned into the node's.
+    """
+    d = len(domain)
+    k_R = np.empty((d, 3, 3))
+    k_t = np.empty((d, 3))
+    S = np.zeros((d, 6, 6))
+    top = np.zeros(d, dtype=np.bool_)
+    for i in range(d):
+        e = tree_edge[domain[i]]
+        if e < 0:
+            top[i] = True
+            k_R[i] = np.eye(3)
+            k_t[i] = 0.0
+            continue
+        if forward[domain[i]]:
+            k_R[i] = meas_R[e]
+            k_t[i] = meas_t[e]
+            S[i] = info[e]
+            continue
+        Rinv = np.ascontiguousarray(meas_R[e].T)
+        k_R[i] = Rinv
+        k_t[i] = -geo.mulv3(Rinv, meas_t[e])
+        for a in range(2):
+            for b in range(2):
+                S[i, 3 * a:3 * a + 3, 3 * b:3 * b + 3] = geo.mul3t(meas_R[e], geo.mul3(
+                    np.ascontiguousarray(info[e, 3 * a:3 * a + 3, 3 * b:3 * b + 3]),
+                    meas_R[e]))
+    return k_R, k_t, S, top
+
+
+@kernel
+def merged_stiffness(
+    tree_R: Array, tree_t: Array, domain: np.ndarray, kept: np.ndarray, start: np.ndarray,
+    R_beta: Array, t_beta: Array, S_beta: Array, dof: np.ndarray,
+) -> Array:
+    """``J_βᵀ J_β`` at each kept node: the diagonal block the merged constraint β of its
+    segment contributes to ``B`` (eq. 3.36), for a perturbation of the kept node's local
+    transform.
+
+    Args:
+        tree_R, tree_t: local transforms of the pose tree.
+        domain: the edge's domain; ``kept``/``start`` index it.
+        kept, start: the segments (see :class:`Selection`).
+        R_beta, t_beta: merged measurements, ``(k, 3, 3)`` and ``(k, 3)``.
+        S_beta: merged stiffness in error coordinates, ``(k, 6, 6)``.
+        dof: the tangent coordinates in use.
+
+    Returns:
+        ``(k, p, p)`` blocks ``J_rawᵀ S_β J_raw`` (= ``J_βᵀ J_β`` with ``J_β = W_β J_raw``,
+        ``W_βᵀ W_β = S_β``: no whitening factor is needed).
+    """
+    k = len(kept)
+    p = len(dof)
+    out = np.empty((k, p, p))
+    Sd = np.empty((p, p))
+    raw = np.empty((p, p))
+    for j in range(k):
+        R = np.eye(3)
+        x = np.zeros(3)
+        R_par = np.eye(3)
+        for pos in range(start[j], kept[j] + 1):
+            n = domain[pos]
+            R_par = R
+            x = x + geo.mulv3(R, tree_t[n])
+            R = geo.mul3(R, tree_R[n])
+        _, _, Jb = endpoint_jacobians_one(0, np.eye(3), np.zeros(3), R, x, R_beta[j], t_beta[j])
+        M = chain_jacobian_one(R_par, R, x, x)
+        for a in range(p):
+            for b in range(p):
+                acc = 0.0
+                for c in range(6):
+                    acc += Jb[dof[a], c] * M[c, dof[b]]
+                raw[a, b] = acc
+                Sd[a, b] = S_beta[j, dof[a], dof[b]]
+        out[j] = raw.T @ Sd @ raw
+    return out
 
 
 def distribute(
@@ -134,71 +232,79 @@ def distribute(
         compliance: distribution weight of each domain node, ``(d,)`` (``1 / diag(B)``).
 
     Returns:
-        New local transforms of the domain nodes. Each kept node ends exactly where its
-        step puts it relative to the segment's parent; the nodes in between take a share of
-        the rotation and translation in proportion to their cumulative compliance.
+        New local transforms of the domain nodes (see :func:`distribute_into`).
     """
-    R, valid = _padded(R_loc, sel, np.eye(3))
-    t, _ = _padded(t_loc, sel, np.zeros(3))
-    w, _ = _padded(compliance, sel, np.zeros(()))
-    last = sel.lengths - 1
-    cols = np.arange(len(last))
-    H_R, H_x = geo.cumulative_compose(R, t)
-    # Target of each kept node in its segment's frame: its parent's pose times its local
-    # transform with the step applied.
-    par_R = np.where((last > 0)[:, None, None], H_R[np.maximum(last - 1, 0), cols], np.eye(3))
-    par_x = np.where((last > 0)[:, None], H_x[np.maximum(last - 1, 0), cols], 0.0)
-    new_local_R = R[last, cols] @ geo.so3_exp(step[:, 3:])
-    target_R = par_R @ new_local_R
-    target_x = par_x + np.einsum("kij,kj->ki", par_R, t[last, cols] + step[:, :3])
-    omega = geo.so3_log(target_R @ np.swapaxes(H_R[last, cols], -1, -2))
-    frac = np.cumsum(w, axis=0) / np.sum(w, axis=0)[None, :]
-    frac = np.where(valid, frac, 1.0)
-    R_new = geo.so3_exp(frac[..., None] * omega[None]) @ H_R
-    R_prev = np.concatenate([np.broadcast_to(np.eye(3), R_new[:1].shape), R_new[:-1]])
-    local_R = np.swapaxes(R_prev, -1, -2) @ R_new
-    _, x_rot = geo.cumulative_compose(local_R, t)
-    x_new = x_rot + frac[..., None] * (target_x - x_rot[last, cols])[None]
-    x_prev = np.concatenate([np.zeros_like(x_new[:1]), x_new[:-1]])
-    local_t = np.einsum("lkji,lkj->lki", R_prev, x_new - x_prev)
-    out_R = R_loc.copy()
-    out_t = t_loc.copy()
-    offsets = np.arange(len(valid))[:, None]
-    idx = sel.start[None, :] + offsets
-    out_R[idx[valid]] = geo.renormalize(local_R[valid])
-    out_t[idx[valid]] = local_t[valid]
+    out_R = np.array(R_loc, dtype=float)
+    out_t = np.array(t_loc, dtype=float)
+    distribute_into(out_R, out_t, np.arange(len(out_R)), sel.kept, sel.start,
+                    np.ascontiguousarray(step, dtype=float),
+                    np.ascontiguousarray(compliance, dtype=float))
     return out_R, out_t
 
 
-def merged_stiffness(
-    sel: Selection, R_loc: Array, t_loc: Array, R_beta: Array, t_beta: Array, W_beta: Array,
-    dof: np.ndarray,
-) -> Array:
-    """``J_βᵀ J_β`` at each kept node: the diagonal block the merged constraint β of its
-    segment contributes to ``B`` (eq. 3.36), for a perturbation of the kept node's local
-    transform.
+@kernel
+def distribute_into(
+    tree_R: Array, tree_t: Array, domain: np.ndarray, kept: np.ndarray, start: np.ndarray,
+    step: Array, compliance: Array,
+) -> None:
+    """:func:`distribute` in place on the pose tree's local transforms (``domain`` maps the
+    selection's positions to nodes).
 
-    Args:
-        sel: the selection.
-        R_loc, t_loc: local transforms of the domain nodes.
-        R_beta, t_beta: merged measurements, ``(k, 3, 3)`` and ``(k, 3)``.
-        W_beta: whitening of the merged stiffness in the coordinates ``dof``, ``(k, p, p)``.
-        dof: the tangent coordinates in use.
-
-    Returns:
-        ``(k, p, p)`` blocks.
+    Each kept node ends exactly where its step puts it relative to the segment's parent; the
+    nodes in between take a share of the rotation and translation in proportion to their
+    cumulative compliance, keeping the path continuous.
     """
-    R, _ = _padded(R_loc, sel, np.eye(3))
-    t, _ = _padded(t_loc, sel, np.zeros(3))
-    H_R, H_x = geo.cumulative_compose(R, t)
-    last = sel.lengths - 1
-    cols = np.arange(len(last))
-    R_s, x_s = H_R[last, cols], H_x[last, cols]
-    R_par = np.where((last > 0)[:, None, None], H_R[np.maximum(last - 1, 0), cols], np.eye(3))
-    k = len(last)
-    ident = np.broadcast_to(np.eye(3), (k, 3, 3))
-    kind = np.zeros(k, dtype=np.int8)
-    _, _, Jb = endpoint_jacobians(kind, ident, np.zeros((k, 3)), R_s, x_s, R_beta, t_beta)
-    J = (Jb @ chain_jacobians(R_par, R_s, x_s, x_s))[:, dof[:, None], dof[None, :]]
-    J = W_beta @ J
-    return np.swapaxes(J, -1, -2) @ J
+    for j in range(len(kept)):
+        s0 = start[j]
+        length = kept[j] - s0 + 1
+        H_R = np.empty((length, 3, 3))
+        H_x = np.empty((length, 3))
+        R = np.eye(3)
+        x = np.zeros(3)
+        total = 0.0
+        for i in range(length):
+            n = domain[s0 + i]
+            x = x + geo.mulv3(R, tree_t[n])
+            R = geo.mul3(R, tree_R[n])
+            H_R[i] = R
+            H_x[i] = x
+            total += compliance[s0 + i]
+        # Target of the kept node in its segment's frame: its parent's pose times its local
+        # transform with the step applied.
+        last = domain[kept[j]]
+        if length > 1:
+            par_R = H_R[length - 2]
+            par_x = H_x[length - 2]
+        else:
+            par_R = np.eye(3)
+            par_x = np.zeros(3)
+        target_R = geo.mul3(par_R, geo.mul3(tree_R[last], geo.so3_exp_one(step[j, 3:])))
+        target_x = par_x + geo.mulv3(par_R, tree_t[last] + step[j, :3])
+        omega = geo.so3_log_one(geo.mul3(target_R, np.ascontiguousarray(H_R[length - 1].T)))
+        # Turn the segment: node i's pose rotates by its share of ω.
+        frac = np.empty(length)
+        R_new = np.empty((length, 3, 3))
+        local_R = np.empty((length, 3, 3))
+        x_rot = np.empty((length, 3))
+        R_prev = np.eye(3)
+        acc_R = np.eye(3)
+        acc_x = np.zeros(3)
+        cum = 0.0
+        for i in range(length):
+            cum += compliance[s0 + i]
+            frac[i] = cum / total
+            R_new[i] = geo.mul3(geo.so3_exp_one(frac[i] * omega), H_R[i])
+            local_R[i] = geo.mul3t(R_prev, R_new[i])
+            R_prev = R_new[i]
+            acc_x = acc_x + geo.mulv3(acc_R, tree_t[domain[s0 + i]])
+            acc_R = geo.mul3(acc_R, local_R[i])
+            x_rot[i] = acc_x
+        # Then shift it: node i's position moves by its share of the kept node's miss.
+        miss = target_x - x_rot[length - 1]
+        x_prev = np.zeros(3)
+        for i in range(length):
+            x_new = x_rot[i] + frac[i] * miss
+            n = domain[s0 + i]
+            tree_t[n] = x_new - x_prev if i == 0 else geo.mulv3t(R_new[i - 1], x_new - x_prev)
+            tree_R[n] = geo.renormalize_one(local_R[i])
+            x_prev = x_new

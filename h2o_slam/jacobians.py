@@ -19,8 +19,12 @@ from __future__ import annotations
 import numpy as np
 
 from h2o_slam import geometry as geo
+from h2o_slam.compiled import kernel
 from h2o_slam.geometry import Array
 from h2o_slam.graph import EdgeKind
+
+_RELATIVE = int(EdgeKind.RELATIVE)
+_POSITION = int(EdgeKind.POSITION)
 
 
 def endpoint_jacobians(
@@ -37,75 +41,64 @@ def endpoint_jacobians(
     Returns:
         ``(e, J_a, J_b)`` with shapes ``(M, 6)``, ``(M, 6, 6)``, ``(M, 6, 6)``.
     """
-    m = len(kind)
-    e = np.zeros((m, 6))
-    Ja = np.zeros((m, 6, 6))
-    Jb = np.zeros((m, 6, 6))
-    rel = kind == EdgeKind.RELATIVE
-    if np.any(rel):
-        e[rel], Ja[rel], Jb[rel] = _relative(Ra[rel], xa[rel], Rb[rel], xb[rel], Rk[rel], tk[rel])
-    pos = kind == EdgeKind.POSITION
-    if np.any(pos):
-        e[pos, :3] = xb[pos] - tk[pos]
-        Jb[pos, :3, :3] = np.eye(3)
-    ori = kind == EdgeKind.ORIENTATION
-    if np.any(ori):
-        rot = geo.so3_log(np.swapaxes(Rk[ori], -1, -2) @ Rb[ori])
-        e[ori, 3:] = rot
-        Jb[ori, 3:, 3:] = geo.so3_right_jacobian_inv(rot) @ np.swapaxes(Rb[ori], -1, -2)
+    def c(a: Array) -> Array:
+        return np.ascontiguousarray(a, dtype=float)
+
+    e, Ja, Jb = _endpoint_jacobians_many(
+        np.ascontiguousarray(kind, dtype=np.int64), c(Ra), c(xa), c(Rb), c(xb), c(Rk), c(tk))
     return e, Ja, Jb
 
 
+@kernel
+def _endpoint_jacobians_many(
+    kind: np.ndarray, Ra: Array, xa: Array, Rb: Array, xb: Array, Rk: Array, tk: Array
+) -> tuple[Array, Array, Array]:
+    m = len(kind)
+    e = np.empty((m, 6))
+    Ja = np.empty((m, 6, 6))
+    Jb = np.empty((m, 6, 6))
+    for i in range(m):
+        ei, Jai, Jbi = endpoint_jacobians_one(kind[i], Ra[i], xa[i], Rb[i], xb[i], Rk[i], tk[i])
+        e[i] = ei
+        Ja[i] = Jai
+        Jb[i] = Jbi
+    return e, Ja, Jb
+
+
+@kernel
 def endpoint_jacobians_one(
     kind: int, Ra: Array, xa: Array, Rb: Array, xb: Array, Rk: Array, tk: Array
 ) -> tuple[Array, Array, Array]:
-    """:func:`endpoint_jacobians` of a single edge (the per-edge hot path, without batching
-    overhead): ``(e, J_a, J_b)`` with shapes ``(6,)``, ``(6, 6)``, ``(6, 6)``."""
+    """:func:`endpoint_jacobians` of a single edge: ``(e, J_a, J_b)`` with shapes ``(6,)``,
+    ``(6, 6)``, ``(6, 6)``."""
     e = np.zeros(6)
     Ja = np.zeros((6, 6))
     Jb = np.zeros((6, 6))
-    if kind == EdgeKind.RELATIVE:
+    if kind == _RELATIVE:
         d = xb - xa
-        RkRa = Rk.T @ Ra.T
-        rot = geo.so3_log_one(RkRa @ Rb)
-        e[:3] = RkRa @ d - Rk.T @ tk
+        RkRa = geo.mul3t(Rk, Ra.T.copy())
+        rot = geo.so3_log_one(geo.mul3(RkRa, Rb))
+        e[:3] = geo.mulv3(RkRa, d) - geo.mulv3t(Rk, tk)
         e[3:] = rot
-        jr_rbT = geo.so3_right_jacobian_inv_one(rot) @ Rb.T
-        Jb[:3, :3] = RkRa
-        Jb[3:, 3:] = jr_rbT
-        Ja[:3, :3] = -RkRa
-        Ja[:3, 3:] = RkRa @ np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
-        Ja[3:, 3:] = -jr_rbT
-    elif kind == EdgeKind.POSITION:
-        e[:3] = xb - tk
-        Jb[:3, :3] = np.eye(3)
+        jr_rbT = geo.mul3(geo.so3_right_jacobian_inv_one(rot), Rb.T.copy())
+        # Rotating A about its origin swings B's offset as seen from A: d/dω of R_aᵀ d is
+        # R_aᵀ[d]×.
+        swing = geo.mul3(RkRa, geo.hat_one(d))
+        for i in range(3):
+            for j in range(3):
+                Jb[i, j] = RkRa[i, j]
+                Jb[3 + i, 3 + j] = jr_rbT[i, j]
+                Ja[i, j] = -RkRa[i, j]
+                Ja[i, 3 + j] = swing[i, j]
+                Ja[3 + i, 3 + j] = -jr_rbT[i, j]
+    elif kind == _POSITION:
+        for i in range(3):
+            e[i] = xb[i] - tk[i]
+            Jb[i, i] = 1.0
     else:
-        rot = geo.so3_log_one(Rk.T @ Rb)
+        rot = geo.so3_log_one(geo.mul3t(Rk, Rb))
         e[3:] = rot
-        Jb[3:, 3:] = geo.so3_right_jacobian_inv_one(rot) @ Rb.T
-    return e, Ja, Jb
-
-
-def _relative(
-    Ra: Array, xa: Array, Rb: Array, xb: Array, Rk: Array, tk: Array
-) -> tuple[Array, Array, Array]:
-    RaT = np.swapaxes(Ra, -1, -2)
-    RkT = np.swapaxes(Rk, -1, -2)
-    d = xb - xa
-    tab = np.einsum("mij,mj->mi", RaT, d)
-    RkRa = RkT @ RaT
-    rot = geo.so3_log(RkRa @ Rb)
-    e = np.concatenate([np.einsum("mij,mj->mi", RkT, tab - tk), rot], axis=-1)
-    jr_rbT = geo.so3_right_jacobian_inv(rot) @ np.swapaxes(Rb, -1, -2)
-    m = len(Ra)
-    Ja = np.zeros((m, 6, 6))
-    Jb = np.zeros((m, 6, 6))
-    Jb[:, :3, :3] = RkRa
-    Jb[:, 3:, 3:] = jr_rbT
-    Ja[:, :3, :3] = -RkRa
-    # Rotating A about its origin swings B's offset as seen from A: d/dω of R_aᵀ d is R_aᵀ[d]×.
-    Ja[:, :3, 3:] = RkRa @ geo.hat(d)
-    Ja[:, 3:, 3:] = -jr_rbT
+        Jb[3:, 3:] = geo.mul3(geo.so3_right_jacobian_inv_one(rot), Rb.T.copy())
     return e, Ja, Jb
 
 
@@ -126,9 +119,87 @@ def chain_jacobians(
         by ``R_parent δt``; a local rotation turns the end about the ancestor's origin by
         ``ω = R_node δθ``, moving it by ``ω × (x_end − x_node)``.
     """
-    d = len(R_node)
-    M = np.zeros((d, 6, 6))
-    M[:, :3, :3] = R_parent
-    M[:, :3, 3:] = -geo.hat(x_end - x_node) @ R_node
-    M[:, 3:, 3:] = R_node
+    def c(a: Array) -> Array:
+        return np.ascontiguousarray(a, dtype=float)
+
+    return _chain_jacobians_many(c(R_parent), c(R_node), c(x_node), c(x_end))
+
+
+@kernel
+def _chain_jacobians_many(R_parent: Array, R_node: Array, x_node: Array, x_end: Array) -> Array:
+    out = np.empty((len(R_node), 6, 6))
+    for i in range(len(R_node)):
+        out[i] = chain_jacobian_one(R_parent[i], R_node[i], x_node[i], x_end)
+    return out
+
+
+@kernel
+def chain_jacobian_one(R_parent: Array, R_node: Array, x_node: Array, x_end: Array) -> Array:
+    """One block of :func:`chain_jacobians`, ``(6, 6)``."""
+    M = np.zeros((6, 6))
+    swing = geo.mul3(geo.hat_one(x_end - x_node), R_node)
+    for i in range(3):
+        for j in range(3):
+            M[i, j] = R_parent[i, j]
+            M[i, 3 + j] = -swing[i, j]
+            M[3 + i, 3 + j] = R_node[i, j]
     return M
+
+
+@kernel
+def path_linearization(
+    tree_R: Array, tree_t: Array, a_chain: np.ndarray, b_chain: np.ndarray, kind: int,
+    Rk: Array, tk: Array, W: Array, dof: np.ndarray,
+) -> tuple[Array, Array]:
+    """Whitened Jacobian blocks and residual of one edge over its tree path.
+
+    Args:
+        tree_R, tree_t: local transforms of the pose tree, ``(N, 3, 3)`` and ``(N, 3)``.
+        a_chain, b_chain: the path's chains, from just below the root down to each endpoint.
+        kind, Rk, tk: the edge's kind and measurement.
+        W: the edge's whitening in the coordinates ``dof`` (``(p, p)``).
+
+    Returns:
+        ``J`` ``(d, p, p)`` (a-chain blocks first) and ``r`` ``(p,)``: ``r + Σᵢ Jᵢ xᵢ`` is the
+        whitened error to first order in local perturbations ``xᵢ`` of the domain nodes.
+    """
+    la = len(a_chain)
+    lb = len(b_chain)
+    p = len(dof)
+    R_par = np.empty((la + lb, 3, 3))
+    R_all = np.empty((la + lb, 3, 3))
+    x_all = np.empty((la + lb, 3))
+    ends_R = np.empty((2, 3, 3))
+    ends_x = np.empty((2, 3))
+    for c in range(2):
+        chain = a_chain if c == 0 else b_chain
+        off = 0 if c == 0 else la
+        R = np.eye(3)
+        x = np.zeros(3)
+        for i in range(len(chain)):
+            n = chain[i]
+            R_par[off + i] = R
+            x = x + geo.mulv3(R, tree_t[n])
+            R = geo.mul3(R, tree_R[n])
+            R_all[off + i] = R
+            x_all[off + i] = x
+        ends_R[c] = R
+        ends_x[c] = x
+    e, Ja, Jb = endpoint_jacobians_one(kind, ends_R[0], ends_x[0], ends_R[1], ends_x[1], Rk, tk)
+    J = np.empty((la + lb, p, p))
+    raw = np.empty((p, p))
+    for i in range(la + lb):
+        end = 0 if i < la else 1
+        Je = Ja if end == 0 else Jb
+        M = chain_jacobian_one(R_par[i], R_all[i], x_all[i], ends_x[end])
+        for a in range(p):
+            for b in range(p):
+                acc = 0.0
+                for k in range(6):
+                    acc += Je[dof[a], k] * M[k, dof[b]]
+                raw[a, b] = acc
+        J[i] = W @ raw
+    r = np.empty(p)
+    for a in range(p):
+        r[a] = e[dof[a]]
+    return J, W @ r

@@ -36,11 +36,12 @@ except ImportError:  # pragma: no cover - exercised on installs without it
 
 from h2o_slam import geometry as geo
 from h2o_slam import interpolate
+from h2o_slam.compiled import kernel, warm_up
 from h2o_slam.errors import GraphError
 from h2o_slam.geometry import Array
 from h2o_slam.graph import EARTH, EdgeKind, PoseGraph, chi2
 from h2o_slam.hybrid import solve_hybrid
-from h2o_slam.jacobians import chain_jacobians, endpoint_jacobians, endpoint_jacobians_one
+from h2o_slam.jacobians import endpoint_jacobians, endpoint_jacobians_one, path_linearization
 from h2o_slam.tree import EdgePath, PoseTree
 
 
@@ -118,6 +119,7 @@ class H2OSolver:
     """
 
     def __init__(self, planar: bool, config: SolverConfig | None = None) -> None:
+        warm_up()  # compiled kernels ready before the first update (once per process)
         self.config = config or SolverConfig()
         self.planar = planar
         self.dof = geo.PLANAR_DOF if planar else np.arange(6)
@@ -312,25 +314,11 @@ class H2OSolver:
     def linearize(self, edge: int) -> Linearization:
         """Whitened residual and Jacobian blocks of one edge over its domain (appendix B)."""
         path = self.path(edge)
-        Ra, xa, Rpar_a, R_A, x_A = self._chain(path.a_chain)
-        Rb, xb, Rpar_b, R_B, x_B = self._chain(path.b_chain)
         table = self._edges
-        e, Ja, Jb = endpoint_jacobians_one(
-            int(table.kind[edge]), Ra, xa, Rb, xb, table.meas_R[edge], table.meas_t[edge])
-        blocks = [Ja @ chain_jacobians(Rpar_a, R_A, x_A, xa)] if len(path.a_chain) else []
-        blocks.append(Jb @ chain_jacobians(Rpar_b, R_B, x_B, xb))
-        J = np.concatenate(blocks)[:, self.dof[:, None], self.dof[None, :]]
-        W = table.W[edge]
-        return Linearization(path.domain, W @ J, W @ e[self.dof], len(path.a_chain))
-
-    def _chain(self, chain: np.ndarray) -> tuple[Array, Array, Array, Array, Array]:
-        """End pose, parents' rotations and poses of a chain, in its root's frame."""
-        if len(chain) == 0:
-            empty = np.zeros((0, 3, 3))
-            return np.eye(3), np.zeros(3), empty, empty, np.zeros((0, 3))
-        R, x = self.tree.chain_poses(chain)
-        R_parent = np.concatenate([np.eye(3)[None], R[:-1]])
-        return R[-1], x[-1], R_parent, R, x
+        J, r = path_linearization(
+            self.tree.R, self.tree.t, path.a_chain, path.b_chain, int(table.kind[edge]),
+            table.meas_R[edge], table.meas_t[edge], table.W[edge], self.dof)
+        return Linearization(path.domain, J, r, len(path.a_chain))
 
     # -- updates ------------------------------------------------------------------------------
 
@@ -357,8 +345,10 @@ class H2OSolver:
             assert d_max is not None
             solved = self._relax_interpolated(lin, B_c, d_max, scale)
         else:
+            tau = self.temperature if scale is None else scale
             x = solve_hybrid(lin.J, lin.r, B_c)
-            self._apply(dom, x, self._step_scale(x, scale))
+            _scale_and_apply(self.tree.R, self.tree.t, dom, x, self.dof, tau,
+                             self.config.max_rotation_step_rad)
             solved = len(dom)
         before = float(lin.r @ lin.r)
         after = self._energy_after(edge, dom, B_c, saved) if saved is not None else before
@@ -367,9 +357,7 @@ class H2OSolver:
             assert saved is not None
             self.tree.R[dom], self.tree.t[dom] = saved
         # J was taken at the state kept in either case, so it is the edge's contribution.
-        contrib = _gram(lin.J)
-        self.B[dom] = B_c + contrib
-        self._contrib[edge] = (dom, contrib)
+        self._contrib[edge] = (dom, _store_contribution(self.B, dom, B_c, lin.J))
         return RelaxOutcome(accepted, before, after, len(dom), solved)
 
     def _energy_after(
@@ -404,7 +392,7 @@ class H2OSolver:
         if old is None:  # added without a contribution yet
             return self.B[domain]
         old_nodes, old_blocks = old
-        if np.array_equal(old_nodes, domain):
+        if old_nodes is domain or np.array_equal(old_nodes, domain):
             return self.B[domain] - old_blocks
         # The tree changed since this edge last contributed.
         self.B[old_nodes] -= old_blocks
@@ -419,13 +407,11 @@ class H2OSolver:
         merged = np.flatnonzero(sel.lengths > 1)
         if len(merged):
             B_sel[merged] += self._merge_adjustment(lin, sel, merged)
-        x = solve_hybrid(lin.J[sel.kept], lin.r, B_sel)
+        x = solve_hybrid(np.ascontiguousarray(lin.J[sel.kept]), lin.r, B_sel)
         step = np.zeros((len(x), 6))
         step[:, self.dof] = x * self._step_scale(x, scale)
-        R_new, t_new = interpolate.distribute(
-            sel, self.tree.R[dom], self.tree.t[dom], step, self._compliance(B_c))
-        self.tree.R[dom] = R_new
-        self.tree.t[dom] = t_new
+        interpolate.distribute_into(self.tree.R, self.tree.t, dom, sel.kept, sel.start, step,
+                                    self._compliance(B_c))
         return len(sel.kept)
 
     def _merge_adjustment(
@@ -436,27 +422,20 @@ class H2OSolver:
         Segments that contain a subtree top (tied to the earth by no edge) keep ``B``.
         """
         dom = lin.domain
-        edges = self.tree_edge[dom]
-        forward = self.tree_edge_forward[dom]
-        top = edges < 0
-        k_R = np.where(top[:, None, None], np.eye(3), self.meas_R[edges])
-        k_t = np.where(top[:, None], 0.0, self.meas_t[edges])
-        S = np.where(top[:, None, None], 0.0, self.info[edges])
-        back = ~forward & (edges >= 0)
-        k_R[back], k_t[back] = geo.inverse(k_R[back], k_t[back])
-        rot = np.zeros((int(back.sum()), 6, 6))
-        rot[:, :3, :3] = rot[:, 3:, 3:] = k_R[back]
-        # A reversed edge's error lives in the parent's frame; turn it into the node's.
-        S[back] = np.swapaxes(rot, -1, -2) @ S[back] @ rot
-        sub = interpolate.Selection(sel.kept[merged], sel.start[merged])
-        R_b, t_b, S_b = interpolate.merge_segments(sub, k_R, k_t, S)
-        W_b = whitening(S_b, self.dof)
+        kept, start = sel.kept[merged], sel.start[merged]
+        table = self._edges
+        k_R, k_t, S, top = interpolate.tree_edge_constraints(
+            dom, self.tree_edge, self.tree_edge_forward, table.meas_R, table.meas_t, table.info)
+        R_b, t_b, S_b = interpolate._merge_segments(kept, start, k_R, k_t, S)
         adjust = interpolate.merged_stiffness(
-            sub, self.tree.R[dom], self.tree.t[dom], R_b, t_b, W_b, self.dof)
-        for j, pos in enumerate(sub.kept):
-            alpha = self._contrib[int(edges[pos])] if edges[pos] >= 0 else None
-            has_top = bool(np.any(edges[sub.start[j]:pos + 1] < 0))
-            if has_top or alpha is None or not np.array_equal(alpha[0], dom[pos:pos + 1]):
+            self.tree.R, self.tree.t, dom, kept, start, R_b, t_b, S_b, self.dof)
+        tops_before = np.concatenate([[0], np.cumsum(top)])
+        has_top = tops_before[kept + 1] > tops_before[start]
+        contrib = self._contrib
+        for j, (node, edge) in enumerate(zip(dom[kept].tolist(),
+                                             self.tree_edge[dom[kept]].tolist(), strict=True)):
+            alpha = contrib[edge] if edge >= 0 else None
+            if has_top[j] or alpha is None or len(alpha[0]) != 1 or alpha[0][0] != node:
                 adjust[j] = 0.0
             else:
                 adjust[j] -= alpha[1][0]
@@ -515,20 +494,13 @@ class H2OSolver:
     def _step_scale(self, x: Array, scale: float | None = None) -> float:
         """τ (or ``scale``), reduced so that no node turns by more than the cap (3.3.11)."""
         tau = self.temperature if scale is None else scale
-        rot = x[:, 2:] if self.planar else x[:, 3:]
-        largest = float(np.max(np.linalg.norm(rot, axis=1), initial=0.0))
-        cap = self.config.max_rotation_step_rad
-        return tau if largest * tau <= cap else cap / largest
+        return float(_capped_scale(np.ascontiguousarray(x), tau,
+                                   self.config.max_rotation_step_rad))
 
     def _apply(self, nodes: np.ndarray, x: Array, scale: float) -> None:
         """Apply a local step ``x`` (``(d, p)``) to ``nodes``, scaled by ``scale``."""
-        full = np.zeros((len(nodes), 6))
-        full[:, self.dof] = x
-        full *= scale
-        tree = self.tree
-        tree.t[nodes] += full[:, :3]
-        turn = geo.yaw_to_matrix(full[:, 5]) if self.planar else geo.so3_exp(full[:, 3:])
-        tree.R[nodes] = geo.renormalize(tree.R[nodes] @ turn)
+        _apply_local(self.tree.R, self.tree.t, np.ascontiguousarray(nodes, dtype=np.int64),
+                     np.ascontiguousarray(x, dtype=float), self.dof, float(scale))
 
     def exact_step(self, damping: float = 0.0) -> tuple[Array, np.ndarray]:
         """The Gauss–Newton step of all edges as a local step per node, without applying it.
@@ -748,9 +720,62 @@ def _tree_edges(graph: PoseGraph, parents: np.ndarray) -> tuple[np.ndarray, np.n
     return edge, forward
 
 
+@kernel
 def _gram(J: Array) -> Array:
-    """Diagonal blocks ``Jᵢᵀ Jᵢ`` of ``JᵀJ``."""
-    return np.swapaxes(J, -1, -2) @ J
+    """Diagonal blocks ``Jᵢᵀ Jᵢ`` of ``JᵀJ``, ``(d, p, p)`` from ``(d, m, p)``."""
+    out = np.empty((J.shape[0], J.shape[2], J.shape[2]))
+    for i in range(J.shape[0]):
+        Ji = np.ascontiguousarray(J[i])
+        out[i] = Ji.T @ Ji
+    return out
+
+
+@kernel
+def _store_contribution(B: Array, nodes: np.ndarray, B_c: Array, J: Array) -> Array:
+    """``B[nodes] = B_c + 𝔅(JᵀJ)``; returns the new contribution ``𝔅(JᵀJ)``."""
+    contrib = _gram(J)
+    for i in range(len(nodes)):
+        B[nodes[i]] = B_c[i] + contrib[i]
+    return contrib
+
+
+@kernel
+def _capped_scale(x: Array, tau: float, cap: float) -> float:
+    """τ, reduced so that no row of the local step ``x`` (``(d, p)``, rotation in the last
+    ``p // 2`` columns — one for planar ``p = 3``) turns by more than ``cap`` (3.3.11)."""
+    p = x.shape[1]
+    first = p - (p // 2 if p == 6 else 1)
+    largest = 0.0
+    for i in range(x.shape[0]):
+        acc = 0.0
+        for q in range(first, p):
+            acc += x[i, q] * x[i, q]
+        largest = max(largest, np.sqrt(acc))
+    return tau if largest * tau <= cap else cap / largest
+
+
+@kernel
+def _apply_local(
+    tree_R: Array, tree_t: Array, nodes: np.ndarray, x: Array, dof: np.ndarray, scale: float
+) -> None:
+    """``t ← t + δt``, ``R ← R Exp(δθ)`` (renormalized) for the scaled local step ``x``."""
+    full = np.zeros(6)
+    for i in range(len(nodes)):
+        for q in range(len(dof)):
+            full[dof[q]] = scale * x[i, q]
+        n = nodes[i]
+        for k in range(3):
+            tree_t[n, k] += full[k]
+        tree_R[n] = geo.renormalize_one(geo.mul3(tree_R[n], geo.so3_exp_one(full[3:])))
+
+
+@kernel
+def _scale_and_apply(
+    tree_R: Array, tree_t: Array, nodes: np.ndarray, x: Array, dof: np.ndarray, tau: float,
+    cap: float,
+) -> None:
+    """Apply the local step ``x`` scaled by τ, capped (3.3.11)."""
+    _apply_local(tree_R, tree_t, nodes, x, dof, _capped_scale(x, tau, cap))
 
 
 def _block_rows(
