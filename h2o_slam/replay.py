@@ -18,6 +18,13 @@ published), TUM trajectories (``wheel.tum``, ``hybrid_vo.tum``, ``h2o.tum``; als
 ``ground_truth.tum`` when the bag has it), ``graph.g2o`` (+ ``graph.json``), PNG plots
 and ``summary.json``. Damage in the bag ends the replay with a clear error after writing
 out everything processed until then.
+
+A replay is complete when it read every message the bag declares on the mapped topics
+(``metadata.yaml`` or the storage's index), nothing stopped it, and the back end built a
+graph. Anything less is listed in the summary's ``problems`` and, unless
+``ReplayOptions.salvage`` accepts a partial replay, raised as :class:`ReplayError` once
+every output is written. Every failure after the output folder is made writes
+``summary.json``, with the error, whatever stopped the replay.
 """
 
 from __future__ import annotations
@@ -42,8 +49,10 @@ from h2o_slam.errors import InputError
 from h2o_slam.graph import EdgeKind, edge_chi2
 from h2o_slam.h2o_node import H2ONode
 from h2o_slam.replay_io import (
+    REQUIRED_ROLES,
     BagMessage,
     BagReader,
+    BagStats,
     BagWriter,
     ReplayError,
     Storage,
@@ -84,6 +93,9 @@ class ReplayOptions:
         progress: draw a progress bar (only on a terminal).
         verbose: let the nodes log warnings (each rejected message); the summary counts
             them either way.
+        salvage: accept a partial replay (a damaged bag, messages missing against the
+            counts the bag declares, an empty graph): its problems are in the summary and
+            :func:`replay` returns instead of raising.
     """
 
     bag: Path
@@ -98,6 +110,7 @@ class ReplayOptions:
     vo_params: dict[str, Any] = field(default_factory=dict)
     progress: bool = True
     verbose: bool = False
+    salvage: bool = False
 
 
 @dataclass
@@ -154,6 +167,8 @@ class Replay:
         self.vo: HybridVoNode | None = None
         self.h2o: H2ONode | None = None
         self.use_vo = False
+        self.reader: BagReader | None = None
+        self.graph_file: str | None = None
 
     # -- set-up -------------------------------------------------------------------------------
 
@@ -265,30 +280,66 @@ class Replay:
         """Replay the bag and write every output; returns the summary (also written).
 
         Raises:
-            ReplayError: the bag cannot be replayed, or was damaged part-way (outputs up to
-                the damage are written first).
+            ReplayError: the bag cannot be replayed, was damaged part-way, or the replay is
+                incomplete (see the module docstring) and ``salvage`` is off; outputs up to
+                the problem and ``summary.json`` are written first.
         """
         out = self.options.output
         _prepare_output(out)
         wall_start = time.perf_counter()
+        try:
+            summary = self._run(wall_start)
+        except ReplayError as exc:
+            self._failure_summary(exc)
+            raise
+        except Exception as exc:  # whatever a bag provokes, the summary says it
+            error = ReplayError(self.options.bag, f"replay failed: {_why(exc)}")
+            self._failure_summary(error)
+            raise error from None
+        problems = summary["problems"]
+        if problems and not self.options.salvage:
+            more = f" (and {len(problems) - 1} more in summary.json)" if len(problems) > 1 \
+                else ""
+            raise ReplayError(self.options.bag, problems[0] + more)
+        return summary
+
+    def _run(self, wall_start: float) -> dict[str, Any]:
+        out = self.options.output
         error: ReplayError | None = None
-        with BagReader(self.options.bag, self.options.topics) as reader:
+        required = REQUIRED_ROLES if self.options.odometry == "hybrid" else ("wheel_odom",)
+        with BagReader(self.options.bag, self.options.topics, required) as reader:
+            self.reader = reader
             self._make_nodes(reader)
             try:
                 with BagWriter(out / "outputs", self.options.storage) as writer:
                     self.writer = writer
                     try:
                         self._loop(reader)
-                    except ReplayError as exc:
-                        error = exc
-                    self._finish()
+                    except Exception as exc:  # damage, or a message no check foresaw
+                        error = _stopped(exc, reader)
+                    try:
+                        self._finish()
+                    except Exception as exc:
+                        error = error or _stopped(exc, reader)
                     self.writer = None
-                summary = self._write_outputs(reader, time.perf_counter() - wall_start, error)
+                return self._write_outputs(reader, time.perf_counter() - wall_start, error)
             finally:
                 self._close_nodes()
-        if error is not None:
-            raise error
-        return summary
+
+    def _failure_summary(self, error: ReplayError) -> None:
+        """``summary.json`` for a replay that ended before writing its own."""
+        path = self.options.output / "summary.json"
+        if path.exists():
+            return
+        stats = self.reader.stats if self.reader is not None else None
+        write_summary(path, {
+            "bag": str(self.options.bag), "error": str(error), "complete": False,
+            "problems": [error.reason], "salvage": self.options.salvage,
+            "messages": dict(stats.counts) if stats else {},
+            "declared_messages": _mapped(stats, stats.declared) if stats else {},
+            "read_messages": dict(stats.read) if stats else {},
+            "topics_in_bag": stats.topics if stats else {},
+        })
 
     def _loop(self, reader: BagReader) -> None:
         h2o = self._h2o()
@@ -329,7 +380,10 @@ class Replay:
                   for name, t in self.tracks.items()}
         if mapper.num_nodes:
             tracks["h2o"] = (np.asarray(mapper.keyframes.stamps, dtype=np.int64), mapper.poses())
-            mapper.save(out / "graph.g2o")
+            try:
+                mapper.save(out / "graph.g2o")
+            except InputError as exc:  # refused (e.g. no edges): the summary says why
+                self.graph_file = f"not saved: {exc}"
         files = {}
         for name, (stamps, poses) in tracks.items():
             if len(stamps) and name != "h2o_online":
@@ -376,7 +430,50 @@ class Replay:
             "files": files,
         }
         summary["accuracy"] = _accuracy(tracks)
+        if self.graph_file is not None:
+            summary["graph"]["file"] = self.graph_file
+        summary.update(self._completeness(reader, error))
         return summary
+
+    def _completeness(self, reader: BagReader, error: ReplayError | None) -> dict[str, Any]:
+        """What was read against what the bag declares, and every reason the replay is
+        not complete."""
+        stats = reader.stats
+        problems = [] if error is None else [error.reason]
+        short = stats.shortfall()
+        if short:
+            declared = sum(d for d, _ in short.values())
+            read = sum(r for _, r in short.values())
+            problems.append(f"read {read} of the {declared} messages the bag declares on "
+                            + ", ".join(f"{t} ({r} of {d})" for t, (d, r) in short.items()))
+        odom_topic = stats.roles.get("wheel_odom", "?")
+        if stats.counts["wheel_odom"] == 0:
+            problems.append(f"no message on {odom_topic} (wheel_odom): nothing to map")
+        elif not self._h2o().mapper.num_nodes:
+            problems.append("the graph is empty: no odometry was accepted (see rejected)")
+        return {"declared_messages": _mapped(stats, stats.declared),
+                "read_messages": {t: stats.read[t] for t in sorted(set(stats.roles.values()))},
+                "lost_messages": {t: d - r for t, (d, r) in short.items()},
+                "complete": not problems, "problems": problems,
+                "salvage": self.options.salvage}
+
+
+def _why(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if isinstance(exc, ReplayError) else f"{text} ({type(exc).__name__})"
+
+
+def _stopped(exc: BaseException, reader: BagReader) -> ReplayError:
+    if isinstance(exc, ReplayError):
+        return exc
+    delivered = sum(reader.stats.counts.values())
+    return ReplayError(reader.path, f"stopped after {delivered} messages: {_why(exc)}")
+
+
+def _mapped(stats: BagStats, counts: dict[str, int]) -> dict[str, int]:
+    """``counts`` of the topics mapped to a role."""
+    topics = set(stats.roles.values())
+    return {t: n for t, n in sorted(counts.items()) if t in topics}
 
 
 def _percentiles(ms: np.ndarray) -> dict[str, float] | None:

@@ -196,6 +196,10 @@ class BagStats:
             record, from a file without index; those are still delivered in file order).
         salvaged: why the bag is read record by record (``None`` when it is not).
         error: the error that ended reading, if one did.
+        declared: messages per topic the bag declares (its ``metadata.yaml``, or the
+            storage's own index); empty when the bag states none (a file read record by
+            record without metadata).
+        read: messages delivered per topic.
     """
 
     path: str
@@ -207,6 +211,15 @@ class BagStats:
     bag_time_backwards: int = 0
     salvaged: str | None = None
     error: str | None = None
+    declared: dict[str, int] = field(default_factory=dict)
+    read: Counter[str] = field(default_factory=Counter)
+
+    def shortfall(self) -> dict[str, tuple[int, int]]:
+        """Mapped topics whose delivered count differs from the declared one:
+        topic → (declared, read)."""
+        return {topic: (self.declared[topic], self.read[topic])
+                for topic in sorted(set(self.roles.values()))
+                if topic in self.declared and self.declared[topic] != self.read[topic]}
 
 
 class _ClosedOnExit:
@@ -294,9 +307,13 @@ class BagReader(_ClosedOnExit):
             self.stats.topics = {
                 name: info.msgtype or "?" for name, info in sorted(self._reader.topics.items())
             }
+            self.stats.declared = {name: int(info.msgcount)
+                                   for name, info in self._reader.topics.items()}
         else:
             assert self._salvage is not None
             self.stats.topics = self._salvage.topics()
+        if self.stats.salvaged is not None:  # metadata.yaml still says what was recorded
+            self.stats.declared = _declared_counts(self.path) or self.stats.declared
 
     def _open_damaged(self, reason: str) -> None:
         """Fall back to the storage file alone: without ``metadata.yaml`` when that is what
@@ -368,6 +385,7 @@ class BagReader(_ClosedOnExit):
             last_bag = max(last_bag, stamp_ns)
             role = by_topic[topic]
             self.stats.counts[role] += 1
+            self.stats.read[topic] += 1
             yield BagMessage(role, topic, type_name, stamp_ns, header_ns, msg)
 
     def _raw(self, by_topic: Mapping[str, str]) -> Iterator[_Raw]:
@@ -447,6 +465,16 @@ def _reason(exc: BaseException) -> str:
 
 
 # --- opening; damaged files read record by record --------------------------------------
+
+
+def _declared_counts(path: Path) -> dict[str, int]:
+    """Messages per topic a rosbag2 folder's ``metadata.yaml`` declares ({} if unreadable)."""
+    try:
+        meta = yaml.safe_load((path / "metadata.yaml").read_text(encoding="utf-8"))
+        topics = meta["rosbag2_bagfile_information"]["topics_with_message_count"]
+        return {str(t["topic_metadata"]["name"]): int(t["message_count"]) for t in topics}
+    except Exception:  # no folder, no file, or not the rosbag2 layout: nothing declared
+        return {}
 
 
 def _any_reader(path: Path) -> AnyReader:

@@ -2,29 +2,67 @@
 
     h2o-replay BAG --output DIR [--topics FILE] [--topic ROLE=TOPIC ...]
                [--odometry auto|hybrid|wheel] [--budget-ms X] [--no-gps]
-               [--storage mcap|sqlite3] [--graph-period S] [--quiet]
+               [--storage mcap|sqlite3] [--graph-period S] [--quiet] [--salvage]
     h2o-replay BAG --realtime [--rate R] [--delay S] [--topics FILE] [--topic ROLE=TOPIC ...]
 
 The work is :mod:`h2o_slam.replay`; this module parses arguments, prints, and maps errors to
-one line and a non-zero exit code (1: the bag or the output, 2: the command line).
+one line and a non-zero exit code (1: the bag, the output or an incomplete replay, 2: the
+command line).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import NoReturn
 
 from h2o_slam.errors import H2OError
+from h2o_slam.h2o_node import PARAMETERS
 from h2o_slam.replay import ReplayOptions, format_summary, publish_realtime, replay
-from h2o_slam.replay_io import ReplayError, topic_map
+from h2o_slam.replay_io import topic_map
 
 PROG = "h2o-replay"
 
 
+def _node_range(parameter: str) -> tuple[float, float]:
+    bounds = next(b for name, _, _, b in PARAMETERS if name == parameter)
+    assert bounds is not None
+    return bounds
+
+
+#: The node's own range of ``budget_ms``: a replay accepts what a robot would.
+BUDGET_RANGE_MS = _node_range("budget_ms")
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with errors on one line (no usage block): ``h2o-replay: error: ...``."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def _number(low: float, high: float, low_open: bool = False) -> Callable[[str], float]:
+    """An argparse type: a finite float in ``[low, high]`` (``(low, high]`` if low_open)."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        inside = (value > low if low_open else value >= low) and value <= high
+        if not (math.isfinite(value) and inside):
+            bracket = "(" if low_open else "["
+            raise argparse.ArgumentTypeError(
+                f"expected a number in {bracket}{low:g}, {high:g}], got {text!r}")
+        return value
+    return parse
+
+
 def parser() -> argparse.ArgumentParser:
     """The command line."""
-    p = argparse.ArgumentParser(prog=PROG, description=(
+    p = _Parser(prog=PROG, description=(
         "Replay a rosbag2 (sqlite3 or mcap) or ROS 1 bag through hybrid_vo_node and h2o_node "
         "in-process, in bag-time order, and write their outputs, TUM trajectories, the graph, "
         "plots and a summary."))
@@ -35,22 +73,28 @@ def parser() -> argparse.ArgumentParser:
                    help="map one role to a topic (repeatable; ROLE= turns a role off)")
     p.add_argument("--odometry", choices=("auto", "hybrid", "wheel"), default="auto",
                    help="back-end odometry: hybrid VO (needs images), wheel, or auto")
-    p.add_argument("--budget-ms", type=float, default=None,
-                   help="h2o_node's per-callback budget as on a robot (outputs then depend "
-                        "on timing); default: every edge solved in full, deterministic")
+    p.add_argument("--budget-ms", type=_number(*BUDGET_RANGE_MS), default=None,
+                   help="h2o_node's per-callback budget in ms as on a robot, "
+                        f"{BUDGET_RANGE_MS[0]:g} to {BUDGET_RANGE_MS[1]:g} (outputs then "
+                        "depend on timing); default or 0: every edge solved in full, "
+                        "deterministic")
     p.add_argument("--no-gps", action="store_true", help="do not feed GPS to the back end")
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
                    help="storage of the output bag")
-    p.add_argument("--graph-period", type=float, default=10.0,
+    p.add_argument("--graph-period", type=_number(0.0, 1e6, low_open=True), default=10.0,
                    help="bag seconds between graph outputs and chi2 samples")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    p.add_argument("--salvage", action="store_true",
+                   help="accept a partial replay (a damaged bag, fewer messages than the bag "
+                        "declares, an empty graph): warnings on stderr, exit 0")
     p.add_argument("--verbose", action="store_true",
                    help="the nodes log every rejected message (the summary counts them)")
     p.add_argument("--realtime", action="store_true",
                    help="publish the bag's mapped topics on the ROS graph at the recorded "
                         "pace instead (for external nodes); no outputs are written")
-    p.add_argument("--rate", type=float, default=1.0, help="--realtime speed factor")
-    p.add_argument("--delay", type=float, default=1.0,
+    p.add_argument("--rate", type=_number(0.0, 1e6, low_open=True), default=1.0,
+                   help="--realtime speed factor")
+    p.add_argument("--delay", type=_number(0.0, 3600.0), default=1.0,
                    help="--realtime: seconds between creating the publishers and the first "
                         "message, for subscribers to match them")
     return p
@@ -58,25 +102,29 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
-    args = parser().parse_args(argv)
+    cli = parser()
+    args = cli.parse_args(argv)
     try:
         topics = topic_map(args.topics, args.topic)
         if args.realtime:
             return publish_realtime(args.bag, topics, args.rate, args.delay)
         if args.output is None:
-            parser().error("--output is required (or --realtime)")
+            cli.error("--output is required (or --realtime)")
         options = ReplayOptions(
             bag=args.bag, output=args.output, topics=topics, odometry=args.odometry,
-            budget_ms=args.budget_ms, use_gps=not args.no_gps, storage=args.storage,
-            graph_period_s=args.graph_period, progress=not args.quiet, verbose=args.verbose)
+            budget_ms=args.budget_ms or None, use_gps=not args.no_gps, storage=args.storage,
+            graph_period_s=args.graph_period, progress=not args.quiet, verbose=args.verbose,
+            salvage=args.salvage)
         summary = replay(options)
     except (H2OError, OSError) as exc:
-        print(f"{PROG}: {exc}", file=sys.stderr)
-        if isinstance(exc, ReplayError) and args.output is not None and \
-                (args.output / "summary.json").exists():
-            print(f"{PROG}: what was replayed before the error is in {args.output}",
-                  file=sys.stderr)
+        where = ""
+        if args.output is not None and (args.output / "summary.json").exists():
+            where = f" [outputs and summary.json in {args.output}]"
+        print(f"{PROG}: {exc}{where}", file=sys.stderr)
         return 1
+    for problem in summary.get("problems", []):
+        print(f"{PROG}: warning: {args.bag}: {problem} (accepted by --salvage)",
+              file=sys.stderr)
     if not args.quiet:
         print(format_summary(summary))
         print(f"outputs in {args.output}")

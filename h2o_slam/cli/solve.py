@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -259,9 +260,31 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _unwritable(option: str, path: Path | None) -> str | None:
+    """Why ``path`` (given as ``option``) cannot be written, or ``None`` when it can."""
+    if path is None:
+        return None
+    folder = path.parent
+    if path.is_dir():
+        return f"{option} {path}: is a folder, not a file"
+    if not folder.is_dir():
+        return f"{option} {path}: folder {folder} does not exist"
+    if not os.access(folder, os.W_OK | os.X_OK) or (path.exists()
+                                                    and not os.access(path, os.W_OK)):
+        return f"{option} {path}: not writable"
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``h2o-solve``."""
     args = build_parser().parse_args(argv)
+    # Every output is checked before the solve, which may take minutes.
+    for option, path in (("--output", args.output), ("--report", args.report),
+                         ("--trace", args.trace)):
+        problem = _unwritable(option, path)
+        if problem is not None:
+            print(f"h2o-solve: {problem}", file=sys.stderr)
+            return 2
     try:
         options = SolveOptions(
             mode=args.mode, passes=args.passes, init=args.init, solver=args.solver,
