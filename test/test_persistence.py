@@ -467,3 +467,30 @@ def test_load_map_reads_only(saved: tuple[Path, Path]) -> None:
     before = {p: p.stat().st_mtime_ns for p in saved}
     load_map(saved[0])
     assert {p: p.stat().st_mtime_ns for p in saved} == before
+
+
+def test_save_service_refuses_an_empty_graph_and_keeps_the_map(tmp_path: Path) -> None:
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.parameter import Parameter
+    from std_srvs.srv import Trigger
+
+    from h2o_slam.h2o_node import H2ONode
+
+    path = tmp_path / "graph.g2o"
+    small_map().save(path)
+    before = path.read_bytes()
+    context = Context()
+    rclpy.init(context=context)
+    try:
+        node = H2ONode(context=context, namespace=f"/persist_srv{os.getpid()}",
+                       parameter_overrides=[Parameter("map_file", value=str(path)),
+                                            Parameter("budget_ms", value=0.0)])
+        try:
+            answer = node._srv_save(Trigger.Request(), Trigger.Response())
+            assert not answer.success and "the graph is empty" in answer.message
+            assert path.read_bytes() == before
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)

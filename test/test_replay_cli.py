@@ -245,3 +245,24 @@ def test_solve_checks_its_output_paths_before_solving(
     argv = [str(graph)] + [str(v) for item in paths.items() for v in item]
     assert solve_cli.main(argv) == 2
     assert "is a folder" in capsys.readouterr().err
+
+
+def test_an_exception_no_check_foresaw_still_writes_the_summary(
+        bags: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    from h2o_slam.h2o_node import H2ONode
+
+    calls = []
+
+    def explode(self: Any, msg: Any) -> None:
+        calls.append(msg)
+        if len(calls) == 50:
+            raise RuntimeError("adversarial message")
+
+    monkeypatch.setattr(H2ONode, "on_odom", explode)
+    out = tmp_path / "out"
+    code, err = run([str(bags["mcap"]), "--output", str(out), "--quiet"], capsys)
+    assert code == 1 and len(err) == 1, err
+    assert "stopped after 50 messages: adversarial message (RuntimeError)" in err[0]
+    s = summary(out)
+    assert s["error"] and not s["complete"] and s["read_messages"]["/wheel/odom"] == 50
