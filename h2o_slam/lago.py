@@ -48,14 +48,12 @@ phases cannot estimate. :func:`lago` refuses them unless ``ignore_global=True``,
 solves the relative edges alone.
 
 Only sparse matrices and sparse direct factorizations are used (:func:`solve_spd`): CHOLMOD
-through scikit-sparse when it is installed, SuperLU from scipy otherwise.
+from cvxopt's wheel by default, QDLDL or scipy's SuperLU when it is not installed.
 """
 
 from __future__ import annotations
 
-import importlib
 import logging
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -65,6 +63,7 @@ from scipy.sparse import linalg as sla
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 from h2o_slam import geometry as geo
+from h2o_slam import spd
 from h2o_slam.errors import InputError
 from h2o_slam.geometry import Array
 from h2o_slam.graph import EARTH, INFO_EIG_FLOOR, EdgeKind, PoseGraph
@@ -75,8 +74,8 @@ LOG = logging.getLogger(__name__)
 #: or at the measurement ``Δ̄ˡ`` (Theorem 1's Gauss–Newton step). See the module docstring.
 JACOBIANS = ("estimate", "measurement")
 
-#: Sparse direct factorizations :func:`solve_spd` offers ("auto": the fastest available).
-FACTORIZATIONS = ("auto", "cholmod", "splu-mmd", "splu-colamd", "spsolve")
+#: Sparse direct factorizations :func:`solve_spd` offers ("auto": the fastest installed).
+FACTORIZATIONS = ("auto", "cholmod", "qdldl", "splu-mmd", "splu-colamd", "spsolve")
 
 _TWO_PI = 2.0 * np.pi
 
@@ -437,79 +436,38 @@ def solve_spd(matrix: Any, rhs: Array, method: str = "auto") -> Array:
 
     Sparse direct factorizations only (no dense matrix is ever formed):
 
-    * ``cholmod`` — CHOLMOD's Cholesky (scikit-sparse; AMD/METIS ordering);
+    * ``cholmod`` — CHOLMOD's supernodal Cholesky (cvxopt's wheel; AMD ordering);
+    * ``qdldl`` — QDLDL's LDLᵀ (AMD ordering);
     * ``splu-mmd`` — SuperLU with the minimum-degree ordering of ``Aᵀ + A``, symmetric
       mode and diagonal pivots (the right SuperLU settings for SPD matrices);
     * ``splu-colamd`` — SuperLU with its default COLAMD ordering;
     * ``spsolve`` — ``scipy.sparse.linalg.spsolve`` with its defaults;
-    * ``auto`` — ``cholmod`` when scikit-sparse is installed, else ``splu-mmd``.
+    * ``auto`` — the first of ``cholmod``, ``qdldl``, ``splu-mmd`` that is installed
+      (:mod:`h2o_slam.spd`, which exact mode uses too).
+
+    ``cholmod`` and ``qdldl`` hand a matrix they find no factor of to ``splu-mmd``.
 
     Raises:
         InputError: the matrix is singular (to working precision) or the solution is not
             finite.
-        ValueError: ``method`` is unknown or ``cholmod`` is asked for but not installed.
+        ValueError: ``method`` is unknown, or names a backend that is not installed.
     """
     if method not in FACTORIZATIONS:
         raise ValueError(f"unknown factorization {method!r}; choose one of "
                          f"{', '.join(FACTORIZATIONS)}")
-    if method == "auto":
-        method = "cholmod" if _cholmod() is not None else "splu-mmd"
-    matrix = sparse.csc_matrix(matrix)
     try:
-        x = _SOLVE[method](matrix, rhs)
-    except (RuntimeError, ArithmeticError) as err:  # SuperLU / CHOLMOD singular matrix
-        if method == "cholmod":
-            # CHOLMOD stops at a pivot that is not positive; LU can still solve an SPD
-            # matrix whose rounding made it look indefinite.
-            LOG.info("LAGO: CHOLMOD failed (%s); retrying with SuperLU", err)
-            return solve_spd(matrix, rhs, "splu-mmd")
+        if method in ("splu-colamd", "spsolve"):
+            matrix = sparse.csc_matrix(matrix)
+            x = (sla.splu(matrix, permc_spec="COLAMD").solve(rhs) if method == "splu-colamd"
+                 else sla.spsolve(matrix, rhs))
+        else:
+            x = spd.solve_spd(matrix, rhs, _SPD_METHOD.get(method, method))
+    except (RuntimeError, np.linalg.LinAlgError) as err:  # SuperLU: exactly singular
         raise InputError(f"LAGO: singular linear system ({err})") from None
     if not np.all(np.isfinite(x)):
         raise InputError("LAGO: singular linear system (non-finite solution)")
     return np.asarray(x, dtype=float)
 
 
-def _cholmod() -> Any:
-    """scikit-sparse's ``sksparse.cholmod`` module, or None when it is not installed.
-
-    Imported by name so that type checking does not depend on the optional package.
-    """
-    try:
-        return importlib.import_module("sksparse.cholmod")
-    except ImportError:
-        return None
-
-
-def _solve_cholmod(matrix: Any, rhs: Array) -> Array:
-    cholmod = _cholmod()
-    if cholmod is None:
-        raise ValueError("factorization 'cholmod' needs scikit-sparse "
-                         "(see requirements-cholmod.txt)")
-    try:
-        return cholmod.cholesky(matrix)(rhs)
-    except cholmod.CholmodError as err:
-        raise RuntimeError(str(err)) from None
-
-
-def _solve_splu(permc: str, symmetric: bool) -> Callable[[Any, Array], Array]:
-    def solve(matrix: Any, rhs: Array) -> Array:
-        if symmetric:
-            lu = sla.splu(matrix, permc_spec=permc, diag_pivot_thresh=0.0,
-                          options={"SymmetricMode": True})
-        else:
-            lu = sla.splu(matrix, permc_spec=permc)
-        return lu.solve(rhs)
-
-    return solve
-
-
-def _solve_spsolve(matrix: Any, rhs: Array) -> Array:
-    return sla.spsolve(matrix, rhs)
-
-
-_SOLVE: dict[str, Callable[[Any, Array], Array]] = {
-    "cholmod": _solve_cholmod,
-    "splu-mmd": _solve_splu("MMD_AT_PLUS_A", symmetric=True),
-    "splu-colamd": _solve_splu("COLAMD", symmetric=False),
-    "spsolve": _solve_spsolve,
-}
+#: :func:`solve_spd`'s names for the :mod:`h2o_slam.spd` backends that differ.
+_SPD_METHOD = {"splu-mmd": "splu"}

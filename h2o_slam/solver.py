@@ -23,16 +23,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-
-try:  # a small wheel everywhere numpy has one; SuperLU does the work without it
-    import qdldl
-except ImportError:  # pragma: no cover - exercised on installs without it
-    qdldl = None
 
 from h2o_slam import geometry as geo
 from h2o_slam import interpolate
@@ -42,6 +36,7 @@ from h2o_slam.geometry import Array
 from h2o_slam.graph import EARTH, EdgeKind, PoseGraph, chi2
 from h2o_slam.hybrid import solve_hybrid
 from h2o_slam.jacobians import endpoint_jacobians, endpoint_jacobians_one, path_linearization
+from h2o_slam.spd import SPDFactor
 from h2o_slam.tree import EdgePath, PoseTree
 
 
@@ -138,6 +133,7 @@ class H2OSolver:
         self._incident: dict[int, list[int]] = {}
         #: χ² of the edge most recently added, at the moment it was added.
         self.last_chi2 = 0.0
+        self._world: WorldSystem | None = None
 
     # -- building -----------------------------------------------------------------------------
 
@@ -508,27 +504,38 @@ class H2OSolver:
         Solved in world coordinates, where ``JᵀJ`` has the sparsity of the graph (the tree's
         local coordinates would make every edge's domain a dense clique), then mapped to the
         tree's local coordinates by the exact linear change of variables.
-        ``damping`` adds ``damping · diag(H)`` (Levenberg–Marquardt).
+        ``damping`` adds ``damping · diag(H)`` (Levenberg–Marquardt). The system's pattern
+        and its factorization's symbolic analysis are kept for the next call while the
+        edges and the free nodes stay (:class:`WorldSystem`).
 
         Returns:
             ``(x, nodes)``: the local step ``(len(nodes), p)`` for the nodes that move.
         """
         R, x = self.world_poses()
-        J, r, free = self._world_system(R, x)
-        H = (J.T @ J).tocsc()
-        g = J.T @ r
-        if damping > 0.0:
-            H = H + damping * sp.diags(H.diagonal())
+        system, J, r = self._world_system(R, x)
+        data, g = system.assemble(J, r, damping)
         step = np.zeros((self.num_nodes, 6))
-        step[np.ix_(free, self.dof)] = -_solve_spd(H, g).reshape(len(free), self.p)
+        free = system.free
+        step[np.ix_(free, self.dof)] = -system.solve(data, g).reshape(len(free), self.p)
         local = self._world_to_local(R, x, step)
         return local[:, self.dof][free], free
+
+    def normal_equations(self) -> tuple[sp.csc_matrix, Array, np.ndarray]:
+        """``(H, g, free)`` of the exact step at the current estimate: the full symmetric
+        ``H = JᵀJ`` and ``g = Jᵀr`` over the free nodes' world perturbations (node-major,
+        ``p`` per node), and the free nodes."""
+        system, J, r = self._world_system(*self.world_poses())
+        data, g = system.assemble(J, r)
+        return system.matrix(data), g, system.free
 
     def apply_step(self, nodes: np.ndarray, x: Array) -> None:
         """Apply a local step in full (no temperature, no cap)."""
         self._apply(nodes, x, scale=1.0)
 
-    def _world_system(self, R: Array, x: Array) -> tuple[sp.csr_matrix, Array, np.ndarray]:
+    def _world_system(self, R: Array, x: Array) -> tuple[WorldSystem, Array, Array]:
+        """The (cached) system, the whitened Jacobians ``[J_a | J_b]`` of every edge w.r.t.
+        world perturbations of its endpoints, shape ``(m, p, 2p)``, and the whitened
+        residuals ``(m, p)``."""
         kind, a, b = self.kind, self.a, self.b
         glob = a == EARTH
         a_idx = np.where(glob, 0, a)
@@ -538,14 +545,14 @@ class H2OSolver:
             kind, Ra, xa, R[b], x[b], self.meas_R, self.meas_t)
         W = self.W
         dof = self.dof
-        r = np.einsum("mij,mj->mi", W, e[:, dof]).ravel()
-        Ja = W @ Ja[:, dof[:, None], dof[None, :]]
-        Jb = W @ Jb[:, dof[:, None], dof[None, :]]
+        r = np.einsum("mij,mj->mi", W, e[:, dof])
+        J = W @ np.concatenate([Ja[:, dof[:, None], dof[None, :]],
+                                Jb[:, dof[:, None], dof[None, :]]], axis=2)
         free = self._free_nodes(a, b)
-        col = np.full(self.num_nodes, -1)
-        col[free] = np.arange(len(free))
-        J = _block_rows(Ja, Jb, np.where(glob, -1, col[a_idx]), col[b], len(free), self.p)
-        return J, r, free
+        system = self._world
+        if system is None or not system.fits(a, b, free, self.num_nodes):
+            system = self._world = WorldSystem(a, b, free, self.num_nodes, self.p)
+        return system, J, r
 
     def _free_nodes(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         # A subtree top moves only if some edge's root is the earth: a global edge into its
@@ -778,81 +785,93 @@ def _scale_and_apply(
     _apply_local(tree_R, tree_t, nodes, x, dof, _capped_scale(x, tau, cap))
 
 
-def _block_rows(
-    Ja: Array, Jb: Array, col_a: np.ndarray, col_b: np.ndarray, num_cols: int, p: int
-) -> sp.csr_matrix:
-    """Sparse ``J`` with one block row per edge and blocks at columns ``col_a`` / ``col_b``
-    (a column of -1 drops the block: a fixed node or the earth)."""
-    m = len(Ja)
-    ii, jj = np.meshgrid(np.arange(p), np.arange(p), indexing="ij")
-    rows, cols, vals = [], [], []
-    for blocks, col in ((Ja, col_a), (Jb, col_b)):
-        keep = col >= 0
-        k = np.flatnonzero(keep)
-        rows.append((k[:, None, None] * p + ii).ravel())
-        cols.append((col[keep][:, None, None] * p + jj).ravel())
-        vals.append(blocks[keep].ravel())
-    return sp.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-        shape=(m * p, num_cols * p),
-    )
+class WorldSystem:
+    """The Gauss–Newton normal equations of all edges in world coordinates, for fixed edges
+    and free nodes: ``H = JᵀJ`` (upper triangle, CSC) and ``g = Jᵀr``.
 
+    Built once per set of edges and free nodes and reused by every iteration and damping
+    retry: the sparsity pattern, the map that scatters every edge's ``[J_a | J_b]ᵀ[J_a |
+    J_b]`` into it (one ``np.bincount``, duplicates summed), and the factorization's
+    symbolic analysis (:class:`~h2o_slam.spd.SPDFactor`).
 
-class _ReusedLDL:
-    """QDLDL factors that keep the ordering and symbolic analysis while the sparsity pattern
-    stays (every iteration and damping retry of one exact solve): a numeric refactorization
-    costs half a fresh one."""
-
-    def __init__(self) -> None:
-        self._pattern: tuple[np.ndarray, np.ndarray] | None = None
-        self._solver: Any = None
-
-    def solve(self, U: sp.csc_matrix, g: Array) -> Array:
-        """Solve with the upper triangle ``U`` of a symmetric matrix."""
-        pattern = self._pattern
-        if (pattern is not None and np.array_equal(pattern[0], U.indptr)
-                and np.array_equal(pattern[1], U.indices)):
-            self._solver.update(U)
-        else:
-            self._pattern = None  # a failed factorization must not be reused
-            self._solver = qdldl.Solver(U)
-            self._pattern = (U.indptr.copy(), U.indices.copy())
-        return np.asarray(self._solver.solve(g), dtype=float)
-
-
-_LDL = _ReusedLDL()
-
-
-def _solve_spd(H: sp.csc_matrix, g: Array) -> Array:
-    """Solve ``H x = g`` for a sparse symmetric positive (semi-)definite ``H``.
-
-    QDLDL's sparse LDLᵀ with AMD ordering first (3.5× faster than SuperLU on city10000's
-    30 000 unknowns: 0.05 s against 0.18 s); where it finds no factor (a singular ``H``)
-    SuperLU, and for an unconstrained direction the minimum-norm solution.
+    Args:
+        a, b: endpoints of every edge (``a`` is :data:`EARTH` for global edges).
+        free: the nodes solved for; the others (and the earth) are held.
+        num_nodes: nodes in the graph.
+        p: unknowns per node (3 planar, 6 otherwise).
     """
-    if H.shape[0] == 0:
-        return np.zeros(0)  # every node fixed: nothing to solve for
-    if qdldl is not None:
+
+    def __init__(
+        self, a: np.ndarray, b: np.ndarray, free: np.ndarray, num_nodes: int, p: int
+    ) -> None:
+        self.a, self.b, self.free = a.copy(), b.copy(), free.copy()
+        self.num_nodes, self.p = num_nodes, p
+        size = len(free) * p
+        self.size = size
+        # Column of H of each row of [J_a | J_b]ᵀ, -1 where the node is held; col[-1] is
+        # the earth's.
+        col = np.full(num_nodes + 1, -1, dtype=np.int64)
+        col[free] = np.arange(len(free)) * p
+        ends = np.stack([col[a], col[b]], axis=1)  # (m, 2)
+        var = np.where(ends[:, :, None] >= 0, ends[:, :, None] + np.arange(p), -1)
+        var = var.reshape(len(a), 2 * p)
+        rows, cols = var[:, :, None], var[:, None, :]
+        keep = ((rows >= 0) & (cols >= 0) & (rows <= cols)).ravel()
+        # Keys column-major, so that sorted keys are the CSC order; the whole diagonal is
+        # in the pattern (damping scales it, and a node without edges shows as singular).
+        keys = (cols * size + rows).ravel()[keep]
+        diag = np.arange(size, dtype=np.int64) * (size + 1)
+        unique, where = np.unique(np.concatenate([keys, diag]), return_inverse=True)
+        self.nnz = len(unique)
+        self._scatter = np.full(keep.size, self.nnz, dtype=np.int64)
+        self._scatter[keep] = where[: len(keys)]
+        self._diag = where[len(keys):]
+        self._gather = np.where(var >= 0, var, size).ravel()
+        self.indices = unique % max(size, 1)
+        self.indptr = np.concatenate(
+            [[0], np.cumsum(np.bincount(unique // max(size, 1), minlength=size))])
+        self.factor = SPDFactor(self.indptr, self.indices)
+
+    def fits(self, a: np.ndarray, b: np.ndarray, free: np.ndarray, num_nodes: int) -> bool:
+        """Whether this system is the one of these edges and free nodes."""
+        return (num_nodes == self.num_nodes and np.array_equal(free, self.free)
+                and np.array_equal(a, self.a) and np.array_equal(b, self.b))
+
+    def assemble(self, J: Array, r: Array, damping: float = 0.0) -> tuple[Array, Array]:
+        """Values of ``H + damping · diag(H)`` in the pattern's order, and ``g``, from the
+        whitened Jacobians ``[J_a | J_b]`` ``(m, p, 2p)`` and residuals ``(m, p)``."""
+        blocks = np.swapaxes(J, 1, 2) @ J  # (m, 2p, 2p)
+        # With float weights bincount sums in float64 (numpy's stubs say int).
+        data = np.asarray(np.bincount(self._scatter, blocks.ravel(), minlength=self.nnz + 1),
+                          dtype=float)
+        grad = np.einsum("mki,mk->mi", J, r).ravel()
+        g = np.asarray(np.bincount(self._gather, grad, minlength=self.size + 1), dtype=float)
+        if damping > 0.0:
+            data[self._diag] *= 1.0 + damping
+        return data[: self.nnz], g[: self.size]
+
+    def matrix(self, data: Array) -> sp.csc_matrix:
+        """The full symmetric matrix with values ``data``."""
+        U = sp.csc_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))
+        return (U + sp.triu(U, k=1).T).tocsc()
+
+    def solve(self, data: Array, g: Array) -> Array:
+        """``H⁻¹ g``; for a singular ``H`` (a direction no edge constrains) the minimum-norm
+        least-squares solution."""
         try:
-            x = _LDL.solve(sp.triu(H, format="csc"), g)
-            if np.all(np.isfinite(x)):
-                return x
-        except (RuntimeError, ValueError):
-            pass  # not quasi-definite: singular
-    try:
-        # Symmetric mode without pivoting keeps the minimum-degree ordering's sparsity: with
-        # SuperLU's default partial pivoting a 15 000-unknown sphere takes 80 s, not 0.2 s.
-        lu = spla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                       options={"SymmetricMode": True})
-        x = lu.solve(g)
-        if np.all(np.isfinite(x)):
-            return x
-    except RuntimeError:
-        pass
-    return spla.lsqr(H, g, atol=1e-14, btol=1e-14, iter_lim=10 * H.shape[0])[0]
+            return self.factor.solve(data, g)
+        except np.linalg.LinAlgError:
+            H = self.matrix(data)
+            return spla.lsqr(H, g, atol=1e-14, btol=1e-14, iter_lim=10 * self.size)[0]
 
 
 def _solve_regularized(J: sp.csr_matrix, r: Array, B: Array) -> Array:
     """Minimizer of ``‖J x + r‖² + Σᵢ xᵢᵀ Bᵢ xᵢ`` for sparse ``J`` and blocks ``B``."""
     H = (J.T @ J + sp.block_diag(list(B), format="csr")).tocsc()
-    return -_solve_spd(H, J.T @ r)
+    g = J.T @ r
+    U = sp.triu(H, format="csc")
+    U.sort_indices()
+    try:
+        return -SPDFactor(U.indptr, U.indices).solve(U.data, g)
+    except np.linalg.LinAlgError:  # an unconstrained direction: the minimum-norm step
+        return -spla.lsqr(H, g, atol=1e-14, btol=1e-14, iter_lim=10 * H.shape[0])[0]

@@ -21,6 +21,7 @@ from scipy import sparse
 
 from h2o_slam import geometry as geo
 from h2o_slam import lago as lago_mod
+from h2o_slam import spd
 from h2o_slam.cli.solve import main
 from h2o_slam.errors import InputError
 from h2o_slam.g2o import read_g2o, write_g2o
@@ -40,9 +41,11 @@ from h2o_slam.synthetic import grid3d, manhattan
 PLANAR = [0, 1, 5]
 S90 = np.array([[0.0, -1.0], [1.0, 0.0]])  # d R(θ) / dθ = R(θ) S90
 
-HAVE_CHOLMOD = lago_mod._cholmod() is not None
-#: The factorizations every path-dependent test runs with: SuperLU always (CI's fresh venv
-#: has no scikit-sparse), and "auto" (CHOLMOD where scikit-sparse is installed).
+#: Factorizations whose backend is installed here (cvxopt and qdldl are in requirements.txt).
+INSTALLED = [f for f in FACTORIZATIONS if f not in ("cholmod", "qdldl")
+             or spd.available(f)]
+#: The factorizations every path-dependent test runs with: SuperLU always, and "auto"
+#: (CHOLMOD from cvxopt's wheel in the default install).
 PATHS = ["splu-mmd", "auto"]
 
 
@@ -680,29 +683,29 @@ def test_unknown_options_are_refused(city):
 
 def test_factorizations_agree(city):
     graph = city.graph
-    methods = [f for f in FACTORIZATIONS if f != "cholmod" or HAVE_CHOLMOD]
-    results = [lago(graph, factorization=f) for f in methods]
+    results = [lago(graph, factorization=f) for f in INSTALLED]
     for other in results[1:]:
         np.testing.assert_allclose(other.t, results[0].t, rtol=0, atol=1e-8)
         np.testing.assert_allclose(other.yaw_rad, results[0].yaw_rad, rtol=0, atol=1e-10)
 
 
 @pytest.mark.filterwarnings("ignore::scipy.sparse.linalg.MatrixRankWarning")  # spsolve
-@pytest.mark.parametrize("method", [f for f in FACTORIZATIONS if f != "cholmod"] +
-                         (["cholmod"] if HAVE_CHOLMOD else []))
+@pytest.mark.parametrize("method", INSTALLED)
 def test_singular_system_is_an_input_error(method):
     singular = sparse.csc_matrix(np.array([[1.0, 0.0], [0.0, 0.0]]))
     with pytest.raises(InputError, match="LAGO: singular linear system"):
         solve_spd(singular, np.ones(2), method)
 
 
-def test_without_scikit_sparse_auto_falls_back_to_superlu(city, monkeypatch):
-    expected = lago(city.graph, factorization="splu-mmd")
-    monkeypatch.setattr(lago_mod, "_cholmod", lambda: None)
-    res = lago(city.graph)  # auto
-    np.testing.assert_array_equal(res.t, expected.t)
-    with pytest.raises(ValueError, match="needs scikit-sparse"):
+def test_without_cvxopt_auto_falls_back_to_qdldl_then_superlu(city, monkeypatch):
+    expected = {f: lago(city.graph, factorization=f) for f in ("qdldl", "splu-mmd")}
+    real = spd.available
+    monkeypatch.setattr(spd, "available", lambda m: m != "cholmod" and real(m))
+    np.testing.assert_array_equal(lago(city.graph).t, expected["qdldl"].t)  # auto
+    with pytest.raises(ValueError, match="needs the cvxopt package"):
         solve_spd(sparse.eye(2, format="csc"), np.ones(2), "cholmod")
+    monkeypatch.setattr(spd, "available", lambda m: m == "splu")
+    np.testing.assert_array_equal(lago(city.graph).t, expected["splu-mmd"].t)
 
 
 # --- accuracy on a synthetic Manhattan world ---------------------------------------------------
