@@ -37,15 +37,16 @@ class _Message:
 
 def wheel_stream(count: int = COUNT, bad: Callable[[int], bool] = lambda i: False
                  ) -> Iterator[_Message]:
-    """Wheel odometry around a circle at 100 Hz (``bad(i)``: message i carries x = 1e200)."""
+    """Wheel odometry around a circle at 100 Hz (``bad(i)``: message i carries x = NaN)."""
     for i in range(count):
         stamp = T0 + i * 10**7
-        x = 1e200 if bad(i) else 3.0 * math.sin(i / 80)
-        y = 3.0 * (1 - math.cos(i / 80))
-        sample = ma.planar_odometry_sample(stamp, "odom", "base_link", x, y, i / 80,
+        sample = ma.planar_odometry_sample(stamp, "odom", "base_link", 3.0 * math.sin(i / 80),
+                                           3.0 * (1 - math.cos(i / 80)), i / 80,
                                            ma.planar_covariance(0.01, 0.01, 0.01))
-        yield _Message("/wheel/odom", "nav_msgs/msg/Odometry", stamp,
-                       ma.fill_odometry(Odometry, sample))
+        msg = ma.fill_odometry(Odometry, sample)
+        if bad(i):
+            msg.pose.pose.position.x = math.nan
+        yield _Message("/wheel/odom", "nav_msgs/msg/Odometry", stamp, msg)
 
 
 @pytest.fixture(scope="module")
