@@ -11,6 +11,12 @@ For replay, every subscription callback is a public ``on_*`` method that takes r
 rosbags messages, and every publication goes through :meth:`H2ONode.emit`, which also
 hands the message to :attr:`H2ONode.sink` when one is set. Output stamps come from input
 stamps, never the wall clock.
+
+No input ends the node: every subscription callback, timer, service and parameter callback
+runs inside one boundary (:meth:`H2ONode._guarded` for inputs, :meth:`H2ONode._boundary`
+for the rest) that turns any exception into a logged rejection counted by reason in
+``/diagnostics`` (``rejected <input>: unexpected <Type>`` for anything but the package's
+own errors, which name their reason).
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ from visualization_msgs.msg import MarkerArray
 
 import msg_adapters as ma
 from h2o_slam import geometry as geo
+from h2o_slam.boundary import behind_boundary
 from h2o_slam.errors import H2OError, InputError
 from h2o_slam.graph import EdgeKind, edge_chi2
 from h2o_slam.mapper import Mapper, MapperConfig, restore
@@ -158,7 +165,7 @@ class H2ONode(Node):
         self._datum = self._configured_datum()
         self._make_interfaces()
         self.add_on_set_parameters_callback(self._check_parameters)
-        self.add_post_set_parameters_callback(self._apply_parameters)
+        self.add_post_set_parameters_callback(self._boundary("parameters", self._apply_parameters))
 
     def destroy_node(self) -> None:
         """Destroy the node and let the garbage collector reclaim it.
@@ -225,6 +232,23 @@ class H2ONode(Node):
             raise InputError(f"datum: expected [lat_deg, lon_deg, alt_m] or [0.0], got {values}")
         return None
 
+    def _boundary(self, what: str, work: Callable[..., Any]) -> Callable[..., Any]:
+        """``work`` (a timer, service or parameter callback) behind the node's boundary: an
+        exception is logged and counted as ``rejected <what>: ...``, never raised into the
+        executor. A service then answers ``success=False`` with the reason."""
+        return behind_boundary(what, work, self._count_rejection)
+
+    def _count_rejection(self, what: str, exc: Exception) -> None:
+        """Log and count a refused input (or failed timer / service) by reason."""
+        if isinstance(exc, H2OError):
+            reason = f"{what}: {_NUMBER.sub('#', str(exc))[:80]}"
+            self.get_logger().warning(f"{what} rejected: {exc}", throttle_duration_sec=1.0)
+        else:  # a bug, not bad input: say so loudly, and keep running
+            reason = f"{what}: unexpected {type(exc).__name__}"
+            self.get_logger().error(f"{what}: unexpected {type(exc).__name__}: {exc}",
+                                    throttle_duration_sec=1.0)
+        self.rejected[reason] += 1
+
     def _make_interfaces(self) -> None:
         depth = int(self.p("input_queue_depth"))
         sensor = QoSProfile(depth=depth, reliability=ReliabilityPolicy.BEST_EFFORT)
@@ -247,14 +271,18 @@ class H2ONode(Node):
         else:
             self.get_logger().warning(
                 "tf2_msgs is not installed: map->odom goes to ~/map_to_odom only, not /tf")
-        self.create_service(Trigger, "~/save_map", self._srv_save)
-        self.create_service(Trigger, "~/exact_solve", self._srv_exact)
-        self.create_service(Trigger, "~/reset", self._srv_reset)
-        self.create_service(SetBool, "~/pause", self._srv_pause)
-        self.create_timer(float(self.p("graph_publish_period")), self.publish_graph)
-        self.create_timer(float(self.p("transform_publish_period")), self.publish_map_to_odom)
-        self.create_timer(float(self.p("diagnostics_period")), self.publish_diagnostics)
-        self.create_timer(float(self.p("idle_period")), self.idle_step)
+        guard = self._boundary
+        self.create_service(Trigger, "~/save_map", guard("save_map", self._srv_save))
+        self.create_service(Trigger, "~/exact_solve", guard("exact_solve", self._srv_exact))
+        self.create_service(Trigger, "~/reset", guard("reset", self._srv_reset))
+        self.create_service(SetBool, "~/pause", guard("pause", self._srv_pause))
+        self.create_timer(float(self.p("graph_publish_period")),
+                          guard("graph_timer", self.publish_graph))
+        self.create_timer(float(self.p("transform_publish_period")),
+                          guard("map_to_odom_timer", self.publish_map_to_odom))
+        self.create_timer(float(self.p("diagnostics_period")),
+                          guard("diagnostics_timer", self.publish_diagnostics))
+        self.create_timer(float(self.p("idle_period")), guard("idle_timer", self.idle_step))
 
     # -- parameters at run time -----------------------------------------------------------------
 
@@ -276,17 +304,21 @@ class H2ONode(Node):
     # -- inputs -------------------------------------------------------------------------------
 
     def _guarded(self, what: str, handler: Callable[[], None]) -> None:
-        """Run one input's handling, timing it; bad input is logged, counted and survived."""
+        """Run one input's handling, timing it: the boundary of every input callback. Bad
+        input is logged, counted and survived, and so is any other exception (counted as
+        ``<what>: unexpected <Type>``); validation comes first in the mapper, so a refused
+        input leaves nothing behind in the track or the graph."""
         start = time.perf_counter()
         counted = sum(self.mapper.rejected.values())
         try:
             if not self.paused:
                 handler()
-        except (H2OError, ValueError, np.linalg.LinAlgError) as exc:
-            if sum(self.mapper.rejected.values()) == counted:  # the mapper counts its own
-                self.rejected[f"{what}: {_NUMBER.sub('#', str(exc))[:80]}"] += 1
-            self.get_logger().warning(f"{what} rejected: {exc}",
-                                      throttle_duration_sec=1.0)
+        except Exception as exc:  # the boundary: no message ends the node (issue 13)
+            if isinstance(exc, H2OError) and sum(self.mapper.rejected.values()) != counted:
+                # the mapper counted it under its own reason
+                self.get_logger().warning(f"{what} rejected: {exc}", throttle_duration_sec=1.0)
+            else:
+                self._count_rejection(what, exc)
         for reason in self.mapper.released_errors:
             self.get_logger().warning(f"held input rejected: {reason}",
                                       throttle_duration_sec=1.0)

@@ -24,7 +24,11 @@ is used) and odometry is ``(x, y, yaw)`` in ``odom``.
   from which :meth:`Mapper.load` continues mapping.
 
 Every rejected input raises :class:`~h2o_slam.errors.InputError` with the reason and is
-counted in :attr:`Mapper.rejected`; nothing already in the graph changes.
+counted in :attr:`Mapper.rejected`; nothing already in the graph or the odometry track
+changes (every input is validated, and every covariance, information matrix and χ² computed
+from it checked finite, before anything is stored). Physics bounds the magnitudes accepted:
+coordinates within :data:`MAX_COORDINATE_M`, measurement sigmas (loop closures, GPS) within
+:data:`MIN_SIGMA` .. :data:`MAX_SIGMA`.
 """
 
 from __future__ import annotations
@@ -53,6 +57,16 @@ CHI2_3DOF_999 = 16.266
 
 #: Most inputs held back waiting for odometry; beyond it the oldest is dropped.
 MAX_HELD = 1000
+
+#: Largest coordinate (m) of an odometry pose, a loop-closure translation or a GPS position:
+#: no frame on or about the Earth holds a point farther (msg_adapters bounds messages alike).
+#: Squared, with the noise that grows with distance, it leaves the solver ~1e250 of headroom.
+MAX_COORDINATE_M = 1e8
+#: Smallest and largest sigma (m or rad) of a loop closure or GPS fix along any direction:
+#: no sensor measures a pose to better than a micrometre, and 1e6 m says nothing. Stiffness
+#: therefore stays within 1e-12 .. 1e12.
+MIN_SIGMA = 1e-6
+MAX_SIGMA = 1e6
 
 
 @dataclass
@@ -243,19 +257,24 @@ class Mapper:
         """An odometry sample ``(x, y, yaw)`` in ``odom``; returns the new node, if any.
 
         Raises:
-            InputError: a stamp not after the previous sample's, or a non-finite pose.
+            InputError: a stamp not after the previous sample's, a non-finite pose or one
+                beyond :data:`MAX_COORDINATE_M`; the track and the graph are unchanged.
         """
         pose = np.asarray(pose, dtype=float)
         if pose.shape != (3,) or not np.all(np.isfinite(pose)):
             raise self.reject("odometry_invalid", f"odometry pose {pose!r} is not finite")
+        if max(abs(pose[0]), abs(pose[1])) > MAX_COORDINATE_M:
+            raise self.reject("odometry_out_of_range",
+                              f"odometry position ({pose[0]:.3g}, {pose[1]:.3g}) m is beyond "
+                              f"{MAX_COORDINATE_M:.0e} m")
         if self.track.size and stamp_ns <= self.track.latest()[0]:
             raise self.reject(
                 "odometry_time_backwards",
                 f"odometry stamp {stamp_ns} is not after the previous {self.track.latest()[0]}",
             )
+        node = self._add_keyframe(stamp_ns, pose) if self._wants_keyframe(stamp_ns, pose) else None
         self.track.append(stamp_ns, pose)
         self.accepted["odometry"] += 1
-        node = self._add_keyframe(stamp_ns, pose) if self._wants_keyframe(stamp_ns, pose) else None
         self._release_held(stamp_ns)
         return node
 
@@ -296,29 +315,76 @@ class Mapper:
     def _add_keyframe(self, stamp_ns: int, pose: Array) -> int:
         kf = self.keyframes
         previous = self.continue_from if self.continue_from is not None else len(kf.stamps) - 1
-        self.continue_from = None
         if previous < 0:
             node = self.h2o.add_pose(geo.yaw_to_matrix(pose[2]), np.array([*pose[:2], 0.0]))
             kf.chain_cov.append(np.full((3, 3), np.nan))
         else:
+            # Everything that can refuse the sample comes before anything is stored.
             d = relative(kf.odom[previous], pose)
             cov = self.increment_covariance(d)
+            info = self._information(planar_info, cov, "odometry_not_finite", "odometry increment")
             node = self.h2o.solver.num_nodes
             self.h2o.add_edge(EdgeKind.RELATIVE, previous, node, geo.yaw_to_matrix(d[2]),
-                              np.array([d[0], d[1], 0.0]), planar_info(cov))
+                              np.array([d[0], d[1], 0.0]), info)
             kf.chain_cov.append(cov)
+        self.continue_from = None
         kf.stamps.append(int(stamp_ns))
         kf.odom.append(pose.copy())
         return node
 
     def increment_covariance(self, d: Array) -> Array:
-        """Covariance of an odometry increment ``(dx, dy, dyaw)`` (the noise model)."""
+        """Covariance of an odometry increment ``(dx, dy, dyaw)`` (the noise model).
+
+        Raises:
+            InputError: an increment whose covariance is not finite (``odometry_not_finite``;
+                not reached for poses within :data:`MAX_COORDINATE_M`).
+        """
         cfg = self.config
         dist = math.hypot(d[0], d[1])
         sig_t = max(cfg.odom_min_sigma_m, cfg.odom_sigma_per_m * dist)
         sig_r = max(cfg.odom_min_sigma_rad,
                     cfg.odom_yaw_sigma_per_rad * abs(d[2]) + cfg.odom_yaw_sigma_per_m * dist)
-        return np.diag([sig_t**2, sig_t**2, sig_r**2])
+        # Products, not ``**``: a float power that overflows raises OverflowError.
+        cov = np.diag([sig_t * sig_t, sig_t * sig_t, sig_r * sig_r])
+        if not np.all(np.isfinite(cov)):
+            raise self.reject("odometry_not_finite",
+                              f"odometry increment {d.tolist()} has no finite covariance")
+        return cov
+
+    def _information(self, invert: Callable[[Array], Array], cov: Array, reason: str,
+                     what: str) -> Array:
+        """``invert(cov)`` (an information matrix), refused with ``reason`` unless finite."""
+        with np.errstate(all="ignore"):
+            try:
+                info = invert(cov)
+            except np.linalg.LinAlgError as exc:
+                raise self.reject(reason, f"{what}: covariance not invertible ({exc})") from None
+        if not np.all(np.isfinite(info)):
+            raise self.reject(reason, f"{what}: information matrix not finite")
+        return info
+
+    def _check_measurement(self, what: str, reason: str, position: Array, cov: Array) -> None:
+        """A loop closure's or fix's position (m) finite and within :data:`MAX_COORDINATE_M`,
+        its covariance finite, symmetric, with sigmas within :data:`MIN_SIGMA` ..
+        :data:`MAX_SIGMA`."""
+        position = np.asarray(position, dtype=float)
+        if not np.all(np.isfinite(position)):
+            raise self.reject(f"{reason}_not_finite", f"{what} {position.tolist()} is not finite")
+        if float(np.max(np.abs(position), initial=0.0)) > MAX_COORDINATE_M:
+            raise self.reject(f"{reason}_out_of_range",
+                              f"{what} {position.tolist()} m is beyond {MAX_COORDINATE_M:.0e} m")
+        if cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
+            raise self.reject(f"{reason}_not_finite", f"{what} covariance is not finite")
+        scale = float(np.max(np.abs(cov)))
+        if scale > MAX_SIGMA**2 or not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-12 * scale):
+            raise self.reject(f"{reason}_bad_covariance",
+                              f"{what} covariance is not symmetric or beyond "
+                              f"{MAX_SIGMA:.0e}² (largest entry {scale:.3g})")
+        low = float(np.linalg.eigvalsh(0.5 * (cov + cov.T))[0])
+        if not low >= MIN_SIGMA**2:
+            raise self.reject(f"{reason}_bad_covariance",
+                              f"{what} covariance has a sigma below {MIN_SIGMA:.0e} "
+                              f"(smallest eigenvalue {low:.3g})")
 
     def add_loop_closure(self, from_ref: int | tuple[str, int], to_ref: int | tuple[str, int],
                          delta: Array, cov3: Array) -> int | None:
@@ -328,9 +394,16 @@ class Mapper:
         newer than the newest odometry is held until odometry reaches it (returns ``None``).
 
         Raises:
-            InputError: an unknown node, a stamp with no keyframe near it, both ends on one
-                node, or a closure the χ² gate rejects.
+            InputError: a non-finite or out-of-range measurement or covariance (bounds in
+                the module docstring), an unknown node, a stamp with no keyframe near it,
+                both ends on one node, or a closure the χ² gate rejects (a χ² that is not
+                finite included).
         """
+        delta = np.asarray(delta, dtype=float)
+        cov3 = np.asarray(cov3, dtype=float)
+        if delta.shape != (3,) or not np.isfinite(delta[2]):
+            raise self.reject("loop_not_finite", f"loop closure {delta.tolist()} is not finite")
+        self._check_measurement("loop closure", "loop", delta[:2], cov3)
         needed = max([r[1] for r in (from_ref, to_ref) if not isinstance(r, int)], default=0)
         if needed and self._hold(needed, lambda: self.add_loop_closure(
                 from_ref, to_ref, delta, cov3)):
@@ -340,11 +413,14 @@ class Mapper:
         if a == b:
             raise self.reject("loop_same_node",
                               f"loop closure joins node {a} to itself ({from_ref}, {to_ref})")
-        meas = compose(compose(carry_a, np.asarray(delta, dtype=float)),
-                       relative(carry_b, np.zeros(3)))
-        self._gate(a, b, meas, np.asarray(cov3, dtype=float))
+        meas = compose(compose(carry_a, delta), relative(carry_b, np.zeros(3)))
+        if not np.all(np.isfinite(meas)):
+            raise self.reject("loop_not_finite",
+                              f"loop closure {a}->{b} carried onto keyframes is not finite")
+        info = self._information(planar_info, cov3, "loop_not_finite", "loop closure")
+        self._gate(a, b, meas, cov3)
         edge = self.h2o.add_edge(EdgeKind.RELATIVE, a, b, geo.yaw_to_matrix(meas[2]),
-                                 np.array([meas[0], meas[1], 0.0]), planar_info(cov3))
+                                 np.array([meas[0], meas[1], 0.0]), info)
         self.accepted["loop_closure"] += 1
         return edge
 
@@ -389,7 +465,15 @@ class Mapper:
         est = relative(np.array([t_a[0], t_a[1], geo.matrix_to_yaw(R_a)]),
                        np.array([t_b[0], t_b[1], geo.matrix_to_yaw(R_b)]))
         err = relative(meas, est)
-        chi2 = float(err @ np.linalg.solve(cov3 + path_cov, err))
+        with np.errstate(all="ignore"):
+            try:
+                chi2 = float(err @ np.linalg.solve(cov3 + path_cov, err))
+            except np.linalg.LinAlgError:
+                chi2 = math.nan
+        if not math.isfinite(chi2):  # ``nan > gate`` is False: never let NaN through
+            raise self.reject("loop_not_finite",
+                              f"loop closure {a}->{b}: chi2 {chi2} is not finite (error "
+                              f"{err.tolist()})")
         if chi2 > self.config.loop_gate_chi2:
             raise self.reject(
                 "loop_gated",
@@ -402,16 +486,26 @@ class Mapper:
         waits for odometry to reach its stamp).
 
         Raises:
-            InputError: no keyframe or odometry sample near the fix in time.
+            InputError: a non-finite or out-of-range position or covariance (bounds in the
+                module docstring), or no keyframe or odometry sample near the fix in time.
         """
+        enu = np.asarray(enu, dtype=float)
+        cov3 = np.asarray(cov3, dtype=float)
+        if enu.shape != (3,):
+            raise self.reject("gps_not_finite", f"GPS position {enu.tolist()} is not (3,)")
+        self._check_measurement("GPS position", "gps", enu, cov3)
+        gps_info = self._information(np.linalg.inv, cov3, "gps_not_finite", "GPS fix")
         if self._hold(stamp_ns, lambda: self.add_gps(stamp_ns, enu, cov3)):
             return None
         node = self._gps_node(stamp_ns)
         R, _ = self.h2o.solver.world_pose(node)
         lever = np.array([*self.config.gps_lever_arm_m, 0.0])
-        meas_t = np.asarray(enu, dtype=float) - R @ lever
+        meas_t = enu - R @ lever
+        if not np.all(np.isfinite(meas_t)):
+            raise self.reject("gps_not_finite", f"GPS fix at {stamp_ns}: antenna position "
+                              f"{meas_t.tolist()} is not finite")
         info = np.zeros((6, 6))
-        info[:3, :3] = np.linalg.inv(np.asarray(cov3, dtype=float))
+        info[:3, :3] = gps_info
         edge = self.h2o.add_edge(EdgeKind.POSITION, EARTH, node, np.eye(3), meas_t, info)
         self.accepted["gps"] += 1
         return edge

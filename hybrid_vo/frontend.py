@@ -16,7 +16,10 @@ and returns one :class:`VoOutput` per frame: the corrected pose of ``base_link``
   the wheel increment is used and the reason is reported: the output is never missing for
   an accepted frame, and never a null pose.
 * Every rejected input raises :class:`InputRejected` after being counted by reason in
-  :attr:`VoFrontend.stats` (DESIGN §7); the frontend's state is unchanged by it.
+  :attr:`VoFrontend.stats` (DESIGN §7); the frontend's state is unchanged by it. Wheel
+  positions beyond :data:`MAX_WHEEL_POSITION_M` are refused (``wheel_out_of_range``), and a
+  frame whose pose or covariance would not be finite is dropped (``frame_not_finite``)
+  without moving the track.
 
 Stamps are integer nanoseconds; poses are ``(x_m, y_m, yaw_rad)`` of ``base_link`` in
 ``odom``; increments are ``T_prev⁻¹ T_new`` in the previous ``base_link`` (REP-103).
@@ -54,6 +57,11 @@ NO_CALIBRATION = "no_calibration"
 BAD_IMAGE = "bad_image"
 
 NS_PER_S = 1_000_000_000
+
+#: Largest wheel odometry coordinate accepted, m (the bound msg_adapters puts on message
+#: positions): no odom frame holds a robot 1e8 m from its origin, and the covariance, which
+#: grows with the square of the travel, keeps ~1e250 of headroom below it.
+MAX_WHEEL_POSITION_M = 1e8
 
 
 class InputRejected(InputError):
@@ -268,9 +276,12 @@ def propagate_covariance(
     F = np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
     G = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     sigma_t = sigma_per_m * math.hypot(dx, dy)
-    Q = np.diag([sigma_t**2, sigma_t**2, yaw_sigma_rad**2])
-    out: FloatArray = F @ cov @ F.T + G @ Q @ G.T
-    return 0.5 * (out + out.T)
+    # Products, not ``**``: a float power that overflows raises instead of giving inf, which
+    # the caller checks for.
+    Q = np.diag([sigma_t * sigma_t, sigma_t * sigma_t, yaw_sigma_rad * yaw_sigma_rad])
+    with np.errstate(over="ignore", invalid="ignore"):
+        out: FloatArray = F @ cov @ F.T + G @ Q @ G.T
+        return 0.5 * (out + out.T)
 
 
 class WheelBuffer:
@@ -390,11 +401,17 @@ class VoFrontend:
         """Buffer a wheel odometry pose; returns outputs of frames it lets through.
 
         Raises:
-            InputRejected: ``wheel_not_finite``, or ``wheel_time_backwards`` when the stamp
+            InputRejected: ``wheel_not_finite``, ``wheel_out_of_range`` (a coordinate beyond
+                :data:`MAX_WHEEL_POSITION_M`), or ``wheel_time_backwards`` when the stamp
                 is not after the previous sample's.
         """
         if not all(math.isfinite(v) for v in (x_m, y_m, yaw_rad)):
             raise self._reject("wheel_not_finite", f"pose ({x_m}, {y_m}, {yaw_rad})")
+        if max(abs(x_m), abs(y_m)) > MAX_WHEEL_POSITION_M:
+            raise self._reject(
+                "wheel_out_of_range",
+                f"position ({x_m:.3g}, {y_m:.3g}) m beyond {MAX_WHEEL_POSITION_M:.0e} m",
+            )
         if self._wheel.stamps and stamp_ns <= self._wheel.stamps[-1]:
             raise self._reject(
                 "wheel_time_backwards",
@@ -497,10 +514,14 @@ class VoFrontend:
                     f"(from {self._wheel.stamps[0]} ns)",
                 )
                 continue
-            outputs.append(self._process(frame, wheel))
+            output = self._process(frame, wheel)
+            if output is not None:
+                outputs.append(output)
         return outputs
 
-    def _process(self, frame: _Frame, wheel: Pose) -> VoOutput:
+    def _process(self, frame: _Frame, wheel: Pose) -> VoOutput | None:
+        """The frame's output, or ``None`` (counted as ``frame_not_finite``, the track
+        unchanged) when its pose, covariance or twist would not be finite."""
         t0 = time.perf_counter()
         track = self._track
         wheel_delta = (0.0, 0.0, 0.0) if track is None else between(track.wheel, wheel)
@@ -517,19 +538,25 @@ class VoFrontend:
                 track.covariance, track.pose, delta, yaw_sigma, self.config.wheel_sigma_per_m
             )
             dt_s = (frame.stamp_ns - track.stamp_ns) / NS_PER_S
+        rate = 1.0 / dt_s if dt_s > 0.0 else 0.0
+        twist = (delta[0] * rate, delta[1] * rate, delta[2] * rate)
+        if not (all(math.isfinite(v) for v in (*pose, *twist, yaw_sigma))
+                and np.all(np.isfinite(cov))):
+            self._count("frame_not_finite", f"frame {frame.stamp_ns} ns: pose {pose}, "
+                        f"increment {delta}: not finite")
+            return None
         self._track = _Track(frame.stamp_ns, wheel, pose, cov)
         elapsed = time.perf_counter() - t0
         self._tally(fallback, elapsed)
-        rate = 1.0 / dt_s if dt_s > 0.0 else 0.0
         return VoOutput(
             stamp_ns=frame.stamp_ns,
             x_m=pose[0],
             y_m=pose[1],
             yaw_rad=pose[2],
             covariance=cov,
-            v_x_mps=delta[0] * rate,
-            v_y_mps=delta[1] * rate,
-            yaw_rate_radps=delta[2] * rate,
+            v_x_mps=twist[0],
+            v_y_mps=twist[1],
+            yaw_rate_radps=twist[2],
             yaw_sigma_rad=yaw_sigma,
             fallback=fallback,
             wheel_delta=wheel_delta,

@@ -14,6 +14,11 @@ horizon band with its patches, with ``publish_debug_image``) and ``/diagnostics`
 Services: ``~/reset`` (``std_srvs/Trigger``) and ``~/pause`` (``std_srvs/SetBool``, true
 pauses).
 
+No input ends the node: every subscription callback, the timer and both services run
+inside one boundary (:meth:`HybridVoNode._guarded`, :meth:`HybridVoNode._boundary`) that
+turns any exception into a logged rejection counted by reason in ``/diagnostics``
+(``rejected.<source>: unexpected <Type>`` for anything but the package's own errors).
+
 For replay, every subscription callback is a public ``on_*`` method that accepts rclpy
 messages and messages deserialized by rosbags alike, and every publication goes through
 :meth:`HybridVoNode.emit`, which also hands it to :attr:`HybridVoNode.sink` when set.
@@ -41,6 +46,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_srvs.srv import SetBool, Trigger
 
 import msg_adapters as ma
+from h2o_slam.boundary import behind_boundary
 from h2o_slam.errors import InputError
 from h2o_slam.node_main import run_node
 from hybrid_vo.errors import HybridVOError
@@ -234,9 +240,10 @@ class HybridVoNode(Node):
         self.tf_skipped = 0
         self._subscribe(bool(p["use_compressed"]))
         self._advertise()
-        self.create_service(Trigger, "~/reset", self._on_reset)
-        self.create_service(SetBool, "~/pause", self._on_pause)
-        self.create_timer(float(p["diagnostics_period"]), self._on_timer)
+        self.create_service(Trigger, "~/reset", self._boundary("reset", self._on_reset))
+        self.create_service(SetBool, "~/pause", self._boundary("pause", self._on_pause))
+        self.create_timer(float(p["diagnostics_period"]),
+                          self._boundary("diagnostics_timer", self._on_timer))
 
     # ------------------------------------------------------------------ set-up
 
@@ -318,17 +325,38 @@ class HybridVoNode(Node):
         self._guarded("odom", self._wheel_odom, msg)
 
     def _guarded(self, source: str, handler: Callable[..., None], *args: Any) -> None:
-        """Run a callback's work; a bad input is logged, counted and skipped (DESIGN §7)."""
+        """Run a callback's work: the boundary of every input callback. A bad input is
+        logged, counted and skipped (DESIGN §7); so is any other exception, counted as
+        ``<source>: unexpected <Type>`` (a bug, logged as an error)."""
         self._inputs_since_tick += 1
         try:
             handler(*args)
-        except InputRejected as exc:  # counted by the frontend already
-            self._warn(exc.reason, f"{self.input_topics[source]}: {exc}")
-        except (InputError, HybridVOError) as exc:
+            self._maybe_diagnostics()
+        except Exception as exc:  # the boundary: no message ends the node (issue 13)
+            self._count_rejection(source, exc)
+
+    def _count_rejection(self, source: str, exc: Exception) -> None:
+        """Log and count a refused input (or a failed timer or service) by reason."""
+        where = self.input_topics.get(source, source)
+        if isinstance(exc, InputRejected):  # counted by the frontend already
+            self._warn(exc.reason, f"{where}: {exc}")
+        elif isinstance(exc, InputError | HybridVOError):
             reason = reason_key(source, exc)
             self.frontend.count_rejection(reason, str(exc))
-            self._warn(reason, f"{self.input_topics[source]}: rejected: {exc}")
-        self._maybe_diagnostics()
+            self._warn(reason, f"{where}: rejected: {exc}")
+        else:
+            reason = f"{source}: unexpected {type(exc).__name__}"
+            self.frontend.count_rejection(reason, str(exc))
+            now = time.monotonic()
+            if now - self._warned.get(reason, -math.inf) >= LOG_THROTTLE_S:
+                self._warned[reason] = now
+                self.get_logger().error(f"{where}: unexpected {type(exc).__name__}: {exc}")
+
+    def _boundary(self, what: str, work: Callable[..., Any]) -> Callable[..., Any]:
+        """``work`` (the timer or a service) behind the node's boundary: an exception is
+        logged and counted, never raised into the executor; a service then answers
+        ``success=False`` with the reason."""
+        return behind_boundary(what, work, self._count_rejection)
 
     def _note(self, source: str, stamp_ns: int) -> None:
         self.monitor.note(self.input_topics[source], stamp_ns)

@@ -18,6 +18,11 @@ Array = NDArray[np.float64]
 COV_RTOL = 1e-6
 #: Absolute tolerance (in the covariance's units) below which asymmetry is rounding.
 COV_ATOL = 1e-12
+#: Largest accepted coordinate of a position in a message, m. Physics bounds it: a frame on
+#: or about the Earth (ECEF: 6.4e6 m; UTM northings: < 1e7 m; a local ``odom`` or ``map``)
+#: never holds a point 1e8 m away. Beyond it, squares of distances and of the noise that
+#: grows with them lose the headroom the solvers need (1e200 overflows a squared sigma).
+MAX_POSITION_M = 1e8
 
 
 def new_message(msg_or_cls: Any) -> Any:
@@ -27,16 +32,23 @@ def new_message(msg_or_cls: Any) -> Any:
     return msg_or_cls
 
 
-def finite_array(values: Any, field: str, shape: tuple[int, ...] | None = None) -> Array:
-    """``values`` as a float array, checked for shape and for NaN/inf."""
+def finite_array(
+    values: Any, field: str, shape: tuple[int, ...] | None = None, max_abs: float | None = None
+) -> Array:
+    """``values`` as a float array, checked for shape, for NaN/inf and, with ``max_abs``,
+    for magnitude."""
     try:
         out = np.array(values, dtype=float)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:
         raise AdapterError(f"{field}: not numeric ({exc})") from None
     if shape is not None and out.shape != shape:
         raise AdapterError(f"{field}: expected shape {shape}, got {out.shape}")
     if not np.all(np.isfinite(out)):
         raise AdapterError(f"{field}: contains NaN or inf")
+    if max_abs is not None and out.size and float(np.max(np.abs(out))) > max_abs:
+        raise AdapterError(
+            f"{field}: magnitude {float(np.max(np.abs(out))):.3g} beyond the bound {max_abs:.3g}"
+        )
     return out
 
 
@@ -44,7 +56,7 @@ def finite_float(value: Any, field: str) -> float:
     """``value`` as a finite float."""
     try:
         out = float(value)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:
         raise AdapterError(f"{field}: not a number ({exc})") from None
     if not np.isfinite(out):
         raise AdapterError(f"{field}: is {out}")
@@ -57,34 +69,52 @@ def covariance(values: Any, n: int, field: str, *, definite: bool = False) -> Ar
     Symmetric within :data:`COV_RTOL` (relative to its largest entry) and positive
     semi-definite within the same tolerance; the symmetric part is returned. With
     ``definite``, zero eigenvalues are rejected as well (the matrix must be invertible).
+    Any finite magnitude is handled: the checks run on the matrix scaled by its largest
+    entry, so 1.7e308 neither overflows nor reaches LAPACK as inf.
     """
     flat = finite_array(values, field).ravel()
     if flat.size != n * n:
         raise AdapterError(f"{field}: expected {n * n} values, got {flat.size}")
     cov = flat.reshape(n, n)
     scale = float(np.max(np.abs(cov)))
-    asym = float(np.max(np.abs(cov - cov.T)))
+    unit = cov / scale if scale > 0.0 else cov
+    asym = float(np.max(np.abs(unit - unit.T))) * scale
     if asym > COV_ATOL + COV_RTOL * scale:
         raise AdapterError(f"{field}: not symmetric (largest asymmetry {asym:.3g})")
-    cov = 0.5 * (cov + cov.T)
-    eig = np.linalg.eigvalsh(cov)
-    if eig[0] < -COV_RTOL * max(scale, COV_ATOL):
+    cov = 0.5 * cov + 0.5 * cov.T
+    unit = 0.5 * (unit + unit.T)
+    # Eigenvalues of the scaled matrix (the tests are scale-free); reported in real units.
+    eig = np.linalg.eigvalsh(unit)
+    scale = scale if scale > 0.0 else 1.0
+    low, high = float(eig[0]) * scale, float(eig[-1]) * scale  # python floats: inf, no warning
+    if eig[0] < -COV_RTOL * max(1.0, COV_ATOL / scale):
         raise AdapterError(
-            f"{field}: indefinite (smallest eigenvalue {eig[0]:.3g}, largest {eig[-1]:.3g})"
+            f"{field}: indefinite (smallest eigenvalue {low:.3g}, largest {high:.3g})"
         )
     if definite and eig[0] <= COV_RTOL * eig[-1]:
         raise AdapterError(
-            f"{field}: singular (eigenvalues {eig[0]:.3g} .. {eig[-1]:.3g}); "
+            f"{field}: singular (eigenvalues {low:.3g} .. {high:.3g}); "
             "a measurement needs a positive definite covariance"
         )
     return cov
 
 
-def inverse_spd(cov: Array) -> Array:
-    """Inverse of a symmetric positive definite matrix, through its eigen-decomposition."""
+def inverse_spd(cov: Array, field: str = "covariance") -> Array:
+    """Inverse of a symmetric positive definite matrix, through its eigen-decomposition.
+
+    Raises:
+        AdapterError: an inverse that is not finite (eigenvalues so small, e.g. subnormal,
+            that their reciprocals overflow).
+    """
     eig, vec = np.linalg.eigh(cov)
-    out: Array = (vec / eig) @ vec.T
-    return 0.5 * (out + out.T)
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        out: Array = (vec / eig) @ vec.T
+        out = 0.5 * (out + out.T)
+    if not np.all(np.isfinite(out)):
+        raise AdapterError(
+            f"{field}: its inverse is not finite (smallest eigenvalue {float(eig[0]):.3g})"
+        )
+    return out
 
 
 def set_float_array(msg: Any, field: str, values: Array) -> None:

@@ -9,10 +9,15 @@ import numpy as np
 
 from msg_adapters._util import Array, finite_array, new_message, set_float_array
 from msg_adapters.errors import AdapterError
+from msg_adapters.images import MAX_IMAGE_PIXELS
 from msg_adapters.stamps import fill_header, stamp_ns
 
 #: Number of distortion coefficients of each model this package knows.
 DISTORTION_MODELS = {"plumb_bob": 5, "rational_polynomial": 8, "equidistant": 4}
+#: Largest accepted magnitude of an entry of K, R, P or D. Focal lengths and principal
+#: points are pixels of an image of at most MAX_IMAGE_PIXELS (a 0.01° field of view on
+#: 16k pixels is f = 9e7 px); P[0, 3] = −f·baseline adds at most a few metres' factor.
+MAX_CALIBRATION_ENTRY = 1e9
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,7 +75,8 @@ def camera_info_from_msg(msg: Any) -> CameraModel:
     calibrated resolution.
 
     Raises:
-        AdapterError: zero size; NaN/inf; an uncalibrated (zero) ``K`` or ``P``;
+        AdapterError: zero size or more than ``MAX_IMAGE_PIXELS``; NaN/inf or entries
+            beyond :data:`MAX_CALIBRATION_ENTRY`; an uncalibrated (zero) ``K`` or ``P``;
             non-positive focal lengths; a last row of ``K`` other than ``[0, 0, 1]``;
             ``R`` not a rotation; an unknown distortion model or a wrong number of
             coefficients for it.
@@ -78,9 +84,15 @@ def camera_info_from_msg(msg: Any) -> CameraModel:
     width, height = int(msg.width), int(msg.height)
     if width <= 0 or height <= 0:
         raise AdapterError(f"CameraInfo: empty image size {width}x{height}")
+    if width * height > MAX_IMAGE_PIXELS:
+        raise AdapterError(
+            f"CameraInfo: image size {width}x{height} exceeds {MAX_IMAGE_PIXELS} pixels"
+        )
     flat: dict[str, Array] = {}
     for name, size in (("k", 9), ("r", 9), ("p", 12), ("d", -1)):
-        arr = finite_array(getattr(msg, name), f"CameraInfo.{name}").ravel()
+        arr = finite_array(
+            getattr(msg, name), f"CameraInfo.{name}", max_abs=MAX_CALIBRATION_ENTRY
+        ).ravel()
         if size >= 0 and arr.size != size:
             raise AdapterError(f"CameraInfo.{name}: {arr.size} values, expected {size}")
         flat[name] = arr

@@ -7,7 +7,8 @@ precision). ENU axes: x east, y north, z up (REP-103; heading 0 = east).
 A fix becomes a :class:`GpsFix` with its ENU covariance (the message's covariance is in
 the ENU frame tangent at the fix; it is rotated into the datum's ENU frame). Fixes that
 must not reach the solver are rejected with the reason: status ``NO_FIX``, NaN/inf or
-out-of-range coordinates, an unknown covariance without a configured sigma, a
+out-of-range coordinates (altitude beyond ±:data:`MAX_ALTITUDE_M`), covariance entries
+beyond :data:`MAX_VARIANCE_M2`, an unknown covariance without a configured sigma, a
 covariance that is not symmetric positive semi-definite, and a horizontal sigma above
 ``max_sigma_m``. Covariance eigenvalues below ``sigma_floor_m²`` are raised to it, so a
 zero covariance never becomes infinite stiffness.
@@ -48,6 +49,13 @@ COVARIANCE_TYPE_KNOWN = 3
 SIGMA_FLOOR_M = 0.01
 #: Default largest accepted horizontal standard deviation (m).
 MAX_SIGMA_M = 10.0
+#: Largest accepted ellipsoidal altitude magnitude, m: the deepest ocean floor is 1.1e4 m
+#: below the ellipsoid and no vehicle that reports NavSatFix to this package flies above
+#: 1e5 m; beyond it, ENU coordinates only carry garbage into the solver.
+MAX_ALTITUDE_M = 1e5
+#: Largest accepted entry of a fix's covariance, m² (σ = 1e6 m: no position at all). A
+#: larger one cannot be rotated into the datum's frame without overflowing.
+MAX_VARIANCE_M2 = 1e12
 
 
 def geodetic_to_ecef(lat_deg: Any, lon_deg: Any, alt_m: Any) -> Array:
@@ -122,7 +130,7 @@ class Datum:
     def __post_init__(self) -> None:
         lat = finite_float(self.lat_deg, "datum.latitude")
         lon = finite_float(self.lon_deg, "datum.longitude")
-        alt = finite_float(self.alt_m, "datum.altitude")
+        alt = _altitude(self.alt_m, "datum.altitude")
         _check_lat_lon(lat, lon, "datum")
         object.__setattr__(self, "_ecef", geodetic_to_ecef(lat, lon, alt))
         object.__setattr__(self, "_rot", enu_rotation(lat, lon))
@@ -179,8 +187,15 @@ def _navsat_geodetic(
     _check_lat_lon(lat, lon, "NavSatFix")
     alt: float | None = None
     if not zero_altitude:
-        alt = finite_float(msg.altitude, "NavSatFix.altitude")
+        alt = _altitude(msg.altitude, "NavSatFix.altitude")
     return status, lat, lon, alt
+
+
+def _altitude(value: Any, field: str) -> float:
+    alt = finite_float(value, field)
+    if abs(alt) > MAX_ALTITUDE_M:
+        raise AdapterError(f"{field}: {alt:.6g} m beyond ±{MAX_ALTITUDE_M:.0e} m")
+    return alt
 
 
 def datum_from_fix(msg: Any, *, accept_unknown_status: bool = True) -> Datum:
@@ -242,6 +257,11 @@ def gps_fix_from_msg(
         cov = covariance(msg.position_covariance, 3, "NavSatFix.position_covariance")
     else:
         raise AdapterError(f"NavSatFix.position_covariance_type: unknown value {cov_type}")
+    if float(np.max(np.abs(cov))) > MAX_VARIANCE_M2:
+        raise AdapterError(
+            f"NavSatFix.position_covariance: entry {float(np.max(np.abs(cov))):.3g} m² beyond "
+            f"{MAX_VARIANCE_M2:.0e} m² (no position at all)"
+        )
     cov = datum.rotate_covariance(cov, lat, lon)
     eig, vec = np.linalg.eigh(cov)
     cov = (vec * np.maximum(eig, sigma_floor_m**2)) @ vec.T

@@ -10,6 +10,12 @@ Compressed images (``format`` naming ``jpeg``/``jpg`` or ``png``, as image_trans
 compressed plugin writes them, e.g. ``"bgr8; jpeg compressed bgr8"``) are decoded with
 ``cv2.imdecode``: colour comes back in OpenCV's BGR order. ``compressedDepth`` is refused.
 OpenCV is imported on first use.
+
+Size is checked before any pixel is touched: a raw image from its header fields, a
+compressed one from its PNG ``IHDR`` or JPEG ``SOF`` header (data that carries neither is
+refused). Images above :data:`MAX_IMAGE_PIXELS`, or of a size other than the expected one,
+are refused there: a 1 MB PNG of 32000² pixels would otherwise cost seconds and gigabytes
+of decoding before its size could be compared.
 """
 
 from __future__ import annotations
@@ -50,6 +56,16 @@ _GRAY_CODE = {
 
 ImageArray = NDArray[Any]
 
+#: Largest accepted image, pixels (50 MP: above any camera this package serves; an 8K
+#: frame is 33 MP).
+MAX_IMAGE_PIXELS = 50_000_000
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# JPEG start-of-frame markers (baseline, progressive, lossless, ...); C4, C8 and CC are not.
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+# JPEG markers that stand alone, without a length (TEM, RSTn, SOI).
+_JPEG_STANDALONE = {0x01, *range(0xD0, 0xD9)}
+
 
 def _cv2() -> Any:
     try:
@@ -62,6 +78,10 @@ def _cv2() -> Any:
 
 
 def _check_size(shape: tuple[int, ...], expected_size: tuple[int, int] | None, what: str) -> None:
+    if shape[0] * shape[1] > MAX_IMAGE_PIXELS:
+        raise AdapterError(
+            f"{what}: size {shape[1]}x{shape[0]} exceeds {MAX_IMAGE_PIXELS} pixels"
+        )
     if expected_size is None:
         return
     width, height = expected_size
@@ -95,19 +115,19 @@ def image_to_numpy(
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
     if height <= 0 or width <= 0:
         raise AdapterError(f"Image: empty image ({width}x{height})")
+    _check_size((height, width), expected_size, "Image")
     itemsize = np.dtype(dtype).itemsize
     row_bytes = width * channels * itemsize
     if step < row_bytes:
         raise AdapterError(
             f"Image.step: {step} bytes is less than width × pixel size = {row_bytes}"
         )
-    buf = np.frombuffer(msg.data, dtype=np.uint8)
+    buf = _bytes(msg.data, "Image.data")
     if buf.size != step * height:
         raise AdapterError(
             f"Image.data: {buf.size} bytes, expected step × height = {step}×{height} "
             f"= {step * height}"
         )
-    _check_size((height, width), expected_size, "Image")
     rows = buf.reshape(height, step)[:, :row_bytes]
     wire = np.dtype(dtype).newbyteorder(">" if int(msg.is_bigendian) else "<")
     pixels = np.ascontiguousarray(rows).view(wire)
@@ -153,12 +173,16 @@ def compressed_image_to_numpy(
         raise AdapterError(
             f"CompressedImage.format: unsupported {msg.format!r} (expected jpeg or png)"
         )
-    buf = np.frombuffer(msg.data, dtype=np.uint8)
+    buf = _bytes(msg.data, "CompressedImage.data")
     if buf.size == 0:
         raise AdapterError("CompressedImage.data: empty")
+    _check_size(compressed_image_shape(buf), expected_size, "CompressedImage")
     cv2 = _cv2()
     flag = cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_UNCHANGED
-    out = cv2.imdecode(buf, flag)
+    try:
+        out = cv2.imdecode(buf, flag)
+    except cv2.error as exc:
+        raise AdapterError(f"CompressedImage.data: OpenCV cannot decode it ({exc})") from None
     if out is None or out.size == 0:
         raise AdapterError(
             f"CompressedImage.data: {buf.size} bytes do not decode as {msg.format!r}"
@@ -166,6 +190,61 @@ def compressed_image_to_numpy(
     _check_size(out.shape, expected_size, "CompressedImage")
     result: ImageArray = out
     return result
+
+
+def _bytes(data: Any, field: str) -> NDArray[np.uint8]:
+    """A ``uint8[]`` field (``bytes``, ``array('B')``, numpy or a list) as a uint8 array."""
+    try:
+        return np.frombuffer(data, dtype=np.uint8)
+    except (TypeError, ValueError):
+        pass
+    try:
+        return np.asarray(data, dtype=np.uint8).ravel()
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise AdapterError(f"{field}: not bytes ({exc})") from None
+
+
+def compressed_image_shape(data: Any) -> tuple[int, int]:
+    """``(height, width)`` from the header of PNG or JPEG data, without decoding it.
+
+    Raises:
+        AdapterError: data that starts as neither, or a header that is cut short.
+    """
+    buf = bytes(_bytes(data, "CompressedImage.data")[:65536])
+    if buf.startswith(_PNG_SIGNATURE):
+        if len(buf) < 24 or buf[12:16] != b"IHDR":
+            raise AdapterError("CompressedImage.data: PNG without an IHDR header")
+        width, height = int.from_bytes(buf[16:20], "big"), int.from_bytes(buf[20:24], "big")
+        return height, width
+    if buf.startswith(b"\xff\xd8"):
+        return _jpeg_shape(buf)
+    raise AdapterError("CompressedImage.data: neither PNG nor JPEG (no signature)")
+
+
+def _jpeg_shape(buf: bytes) -> tuple[int, int]:
+    """``(height, width)`` of the first start-of-frame segment of JPEG data."""
+    i = 2
+    while i + 4 <= len(buf):
+        if buf[i] != 0xFF:
+            raise AdapterError(f"CompressedImage.data: JPEG marker expected at byte {i}")
+        marker = buf[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in _JPEG_STANDALONE:
+            i += 2
+            continue
+        length = int.from_bytes(buf[i + 2 : i + 4], "big")
+        if marker in _JPEG_SOF:
+            if i + 9 > len(buf) or length < 7:
+                break
+            height = int.from_bytes(buf[i + 5 : i + 7], "big")
+            width = int.from_bytes(buf[i + 7 : i + 9], "big")
+            return height, width
+        if marker == 0xDA or length < 2:  # scan data before any frame header
+            break
+        i += 2 + length
+    raise AdapterError("CompressedImage.data: JPEG without a frame (SOF) header")
 
 
 def image_msg_to_gray8(msg: Any, *, expected_size: tuple[int, int] | None = None) -> ImageArray:

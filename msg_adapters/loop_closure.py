@@ -28,7 +28,15 @@ from typing import Any
 
 import numpy as np
 
-from msg_adapters._util import Array, covariance, inverse_spd, new_message, set_float_array
+from msg_adapters._util import (
+    MAX_POSITION_M,
+    Array,
+    covariance,
+    finite_array,
+    inverse_spd,
+    new_message,
+    set_float_array,
+)
 from msg_adapters.errors import AdapterError
 from msg_adapters.rotations import QUAT_NORM_TOL, fill_pose, pose_to_matrix
 from msg_adapters.stamps import NS_PER_S, fill_header, stamp_ns, to_stamp
@@ -113,17 +121,18 @@ class LoopClosure:
 def make_loop_closure(
     from_ref: PoseRef, to_ref: PoseRef, R: Any, t: Any, cov: Any, stamp_ns: int = 0
 ) -> LoopClosure:
-    """A validated :class:`LoopClosure` (information computed from the covariance)."""
+    """A validated :class:`LoopClosure` (information computed from the covariance; the
+    translation finite and within :data:`~msg_adapters._util.MAX_POSITION_M`)."""
     if from_ref == to_ref:
         raise AdapterError(f"loop closure: from and to are the same pose ({from_ref})")
-    full = covariance(np.asarray(cov, dtype=float), 6, "loop closure covariance", definite=True)
+    full = covariance(cov, 6, "loop closure covariance", definite=True)
     return LoopClosure(
         from_ref=from_ref,
         to_ref=to_ref,
-        R=np.array(R, dtype=float),
-        t=np.array(t, dtype=float),
+        R=finite_array(R, "loop closure R", (3, 3)),
+        t=finite_array(t, "loop closure t", (3,), max_abs=MAX_POSITION_M),
         covariance=full,
-        information=inverse_spd(full),
+        information=inverse_spd(full, "loop closure covariance"),
         stamp_ns=int(stamp_ns),
     )
 

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from msg_adapters._util import Array, finite_array
+from msg_adapters._util import MAX_POSITION_M, Array, finite_array
 from msg_adapters.errors import AdapterError
 
 #: Default tolerance on ``|‖q‖ − 1|`` for an incoming quaternion.
@@ -116,8 +116,9 @@ def fill_transform_fields(msg: Any, R: Any, t: Any) -> Any:
 def pose_to_matrix(
     msg: Any, field: str = "pose", norm_tol: float | None = QUAT_NORM_TOL
 ) -> tuple[Array, Array]:
-    """``(R (3, 3), t (3,))`` of a ``geometry_msgs/Pose``, validated."""
+    """``(R (3, 3), t (3,))`` of a ``geometry_msgs/Pose``, validated: finite, every
+    coordinate within :data:`~msg_adapters._util.MAX_POSITION_M`, a unit quaternion."""
     p = msg.position
-    t = finite_array((p.x, p.y, p.z), f"{field}.position", (3,))
+    t = finite_array((p.x, p.y, p.z), f"{field}.position", (3,), max_abs=MAX_POSITION_M)
     R = quaternion_to_matrix(msg.orientation, f"{field}.orientation", norm_tol)
     return R, t

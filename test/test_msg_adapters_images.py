@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import struct
+import time
+import zlib
 from typing import Any
 
 import cv2
@@ -20,6 +23,7 @@ from msg_adapters import (
     image_to_numpy,
     stereo_baseline_m,
 )
+from msg_adapters.images import compressed_image_shape
 
 RNG = np.random.default_rng(0)
 GRAY = RNG.integers(0, 256, (4, 5), dtype=np.uint8)
@@ -137,13 +141,59 @@ def test_compressed(source: str) -> None:
         ("tiff", b"\x01", "unsupported 'tiff'"),
         ("16UC1; compressedDepth png", b"\x01", "compressedDepth"),
         ("jpeg", b"", "CompressedImage.data: empty"),
-        ("jpeg", b"not a jpeg", "10 bytes do not decode as 'jpeg'"),
+        ("jpeg", b"not a jpeg", "neither PNG nor JPEG"),
+        ("png", b"\x89PNG\r\n\x1a\n", "PNG without an IHDR header"),
+        ("jpeg", b"\xff\xd8\xff\xe0\x00\x04ab", "JPEG without a frame"),
+        # A valid header over garbage: the size passes, the decoder refuses the rest.
+        ("png", b"\x89PNG\r\n\x1a\n\x00\x00\x00\x0dIHDR\x00\x00\x00\x04\x00\x00\x00\x04"
+         b"junk", "28 bytes do not decode as 'png'"),
     ],
 )
 def test_compressed_rejects(source: str, fmt: str, data: bytes, match: str) -> None:
     msg = as_source(CompressedImage(format=fmt, data=data), source)
     with pytest.raises(AdapterError, match=match):
         compressed_image_to_numpy(msg)
+
+
+def oversize_png(side: int) -> bytes:
+    """A valid PNG of ``side``² black pixels that compresses to about a megabyte."""
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        crc = zlib.crc32(kind + body) & 0xFFFFFFFF
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", crc)
+
+    rows = zlib.compress(b"".join(b"\x00" + bytes(side) for _ in range(side // 32)), 9)
+    header = struct.pack(">IIBBBBB", side, side, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", rows) + chunk(
+        b"IEND", b"")
+
+
+@pytest.mark.parametrize("source", SOURCES)
+def test_oversize_refused_from_the_header(source: str) -> None:
+    """A 32000² PNG is refused from its IHDR in well under a millisecond's work, and a raw
+    image from its header fields, before anything is decoded or allocated."""
+    msg = as_source(CompressedImage(format="png", data=oversize_png(32000)), source)
+    start = time.perf_counter()
+    with pytest.raises(AdapterError, match="32000x32000 exceeds 50000000 pixels"):
+        compressed_image_to_numpy(msg, grayscale=True)
+    assert time.perf_counter() - start < 0.05
+    # Smaller than the limit but not what the calibration says: also refused undecoded.
+    small = as_source(CompressedImage(format="png", data=oversize_png(4000)), source)
+    start = time.perf_counter()
+    with pytest.raises(AdapterError, match="4000x4000 differs from the expected 640x480"):
+        image_msg_to_gray8(small, expected_size=(640, 480))
+    assert time.perf_counter() - start < 0.05
+    huge = Image(height=40000, width=40000, encoding="mono8", step=40000, data=b"\x00")
+    with pytest.raises(AdapterError, match="40000x40000 exceeds"):
+        image_to_numpy(as_source(huge, source))
+
+
+@pytest.mark.parametrize("progressive", [False, True])
+def test_compressed_shape_from_header(progressive: bool) -> None:
+    flags = [cv2.IMWRITE_JPEG_PROGRESSIVE, 1] if progressive else []
+    ok, jpeg = cv2.imencode(".jpg", COLOR, flags)
+    assert ok
+    assert compressed_image_shape(jpeg.tobytes()) == COLOR.shape[:2]
+    assert compressed_image_shape(compressed(GRAY, ".png", "png").data) == GRAY.shape
 
 
 def test_compressed_expected_size() -> None:
