@@ -67,9 +67,15 @@ def warm_up() -> None:
     from h2o_slam.graph import EARTH, EdgeKind
     from h2o_slam.solver import H2OSolver
 
+    from h2o_slam.jacobians import chain_jacobians, endpoint_jacobians
+
+    geo.so3_exp(np.zeros(3))
     geo.so3_log(np.eye(3))
     geo.so3_right_jacobian_inv(np.zeros(3))
     geo.renormalize(np.eye(3))
+    eye, zero = np.eye(3)[None], np.zeros((1, 3))
+    endpoint_jacobians(np.zeros(1, dtype=np.int64), eye, zero, eye, zero, eye, zero)
+    chain_jacobians(eye, eye, zero, zero[0])
     for planar in (True, False):
         solver = H2OSolver(planar)
         solver.add_pose(np.eye(3), np.zeros(3))

@@ -87,12 +87,26 @@ def renormalize(R: Array) -> Array:
 
 
 @kernel
-def mul3(A: Array, B: Array) -> Array:
-    """``A B`` of two 3×3 matrices."""
-    out = np.empty((3, 3))
+def mul3_into(A: Array, B: Array, out: Array) -> None:
+    """``out = A B`` for 3×3 matrices (``out`` must not alias ``A`` or ``B``)."""
     for i in range(3):
         for j in range(3):
             out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+
+
+@kernel
+def mul3t_into(A: Array, B: Array, out: Array) -> None:
+    """``out = Aᵀ B`` for 3×3 matrices (``out`` must not alias ``A`` or ``B``)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[0, i] * B[0, j] + A[1, i] * B[1, j] + A[2, i] * B[2, j]
+
+
+@kernel
+def mul3(A: Array, B: Array) -> Array:
+    """``A B`` of two 3×3 matrices."""
+    out = np.empty((3, 3))
+    mul3_into(A, B, out)
     return out
 
 
@@ -100,9 +114,7 @@ def mul3(A: Array, B: Array) -> Array:
 def mul3t(A: Array, B: Array) -> Array:
     """``Aᵀ B`` of two 3×3 matrices."""
     out = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = A[0, i] * B[0, j] + A[1, i] * B[1, j] + A[2, i] * B[2, j]
+    mul3t_into(A, B, out)
     return out
 
 
@@ -125,6 +137,13 @@ def mulv3t(A: Array, v: Array) -> Array:
 
 
 @kernel
+def add_mulv3(A: Array, v: Array, out: Array) -> None:
+    """``out += A v`` (3×3 matrix, 3-vectors; ``out`` must not alias ``v``)."""
+    for i in range(3):
+        out[i] += A[i, 0] * v[0] + A[i, 1] * v[1] + A[i, 2] * v[2]
+
+
+@kernel
 def hat_one(v: Array) -> Array:
     """``[v]×`` of one 3-vector."""
     out = np.zeros((3, 3))
@@ -138,8 +157,9 @@ def hat_one(v: Array) -> Array:
 
 
 @kernel
-def so3_exp_one(w: Array) -> Array:
-    """``Exp(w)`` of one rotation vector ``(3,)`` (Rodrigues)."""
+def so3_exp_into(w: Array, out: Array) -> None:
+    """``out = Exp(w)`` for one rotation vector ``(3,)`` (Rodrigues:
+    ``I + a [w]× + b [w]×²`` with ``[w]×² = w wᵀ − |w|² I``)."""
     theta2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
     theta = math.sqrt(theta2)
     if theta < _SMALL_ANGLE:
@@ -148,11 +168,27 @@ def so3_exp_one(w: Array) -> Array:
     else:
         a = math.sin(theta) / theta
         b = (1.0 - math.cos(theta)) / (theta * theta)
-    k = hat_one(w)
-    kk = mul3(k, k)
-    out = a * k + b * kk
+    sq0, sq1, sq2 = w[0] * w[0], w[1] * w[1], w[2] * w[2]
     for i in range(3):
-        out[i, i] += 1.0
+        for j in range(3):
+            out[i, j] = b * w[i] * w[j]
+    # The diagonal from the other two squares: exact zeros stay exact (planar: R[2, 2] = 1).
+    out[0, 0] = 1.0 - b * (sq1 + sq2)
+    out[1, 1] = 1.0 - b * (sq0 + sq2)
+    out[2, 2] = 1.0 - b * (sq0 + sq1)
+    out[0, 1] -= a * w[2]
+    out[0, 2] += a * w[1]
+    out[1, 0] += a * w[2]
+    out[1, 2] -= a * w[0]
+    out[2, 0] -= a * w[1]
+    out[2, 1] += a * w[0]
+
+
+@kernel
+def so3_exp_one(w: Array) -> Array:
+    """``Exp(w)`` of one rotation vector ``(3,)``."""
+    out = np.empty((3, 3))
+    so3_exp_into(w, out)
     return out
 
 
@@ -206,12 +242,28 @@ def so3_right_jacobian_inv_one(w: Array) -> Array:
 
 
 @kernel
+def renormalize_into(R: Array, out: Array) -> None:
+    """``out =`` :func:`renormalize` of one matrix (``out`` may alias ``R``)."""
+    # C = 1.5 I − 0.5 RᵀR, symmetric; scalars keep the kernel free of allocations.
+    c00 = 1.5 - 0.5 * (R[0, 0] * R[0, 0] + R[1, 0] * R[1, 0] + R[2, 0] * R[2, 0])
+    c11 = 1.5 - 0.5 * (R[0, 1] * R[0, 1] + R[1, 1] * R[1, 1] + R[2, 1] * R[2, 1])
+    c22 = 1.5 - 0.5 * (R[0, 2] * R[0, 2] + R[1, 2] * R[1, 2] + R[2, 2] * R[2, 2])
+    c01 = -0.5 * (R[0, 0] * R[0, 1] + R[1, 0] * R[1, 1] + R[2, 0] * R[2, 1])
+    c02 = -0.5 * (R[0, 0] * R[0, 2] + R[1, 0] * R[1, 2] + R[2, 0] * R[2, 2])
+    c12 = -0.5 * (R[0, 1] * R[0, 2] + R[1, 1] * R[1, 2] + R[2, 1] * R[2, 2])
+    for i in range(3):
+        r0, r1, r2 = R[i, 0], R[i, 1], R[i, 2]
+        out[i, 0] = r0 * c00 + r1 * c01 + r2 * c02
+        out[i, 1] = r0 * c01 + r1 * c11 + r2 * c12
+        out[i, 2] = r0 * c02 + r1 * c12 + r2 * c22
+
+
+@kernel
 def renormalize_one(R: Array) -> Array:
     """:func:`renormalize` of one matrix."""
-    corr = -0.5 * mul3t(R, R)
-    for i in range(3):
-        corr[i, i] += 1.5
-    return mul3(R, corr)
+    out = np.empty((3, 3))
+    renormalize_into(R, out)
+    return out
 
 
 @kernel

@@ -27,7 +27,7 @@ import numpy as np
 from h2o_slam import geometry as geo
 from h2o_slam.compiled import kernel
 from h2o_slam.geometry import Array
-from h2o_slam.jacobians import chain_jacobian_one, endpoint_jacobians_one
+from h2o_slam.jacobians import chain_jacobian_one, dof_product_into, endpoint_jacobians_one
 
 
 @dataclass(frozen=True)
@@ -102,33 +102,43 @@ def merge_segments(
 
 
 @kernel
+def add_rotated_stiffness(S: Array, Q: Array, out: Array) -> None:
+    """``out += Rᵀ S R`` with ``R = diag(Q, Q)``: a 6×6 stiffness whose error is turned by
+    the rotation ``Q`` (translation and rotation blocks alike)."""
+    tmp = np.empty((3, 3))
+    for a in range(2):
+        for b in range(2):
+            for i in range(3):
+                for j in range(3):
+                    tmp[i, j] = (S[3 * a + i, 3 * b] * Q[0, j] + S[3 * a + i, 3 * b + 1] * Q[1, j]
+                                 + S[3 * a + i, 3 * b + 2] * Q[2, j])
+            for i in range(3):
+                for j in range(3):
+                    out[3 * a + i, 3 * b + j] += (Q[0, i] * tmp[0, j] + Q[1, i] * tmp[1, j]
+                                                  + Q[2, i] * tmp[2, j])
+
+
+@kernel
 def _merge_segments(
     kept: np.ndarray, start: np.ndarray, k_R: Array, k_t: Array, S: Array
 ) -> tuple[Array, Array, Array]:
     k = len(kept)
     R_beta = np.empty((k, 3, 3))
-    t_beta = np.empty((k, 3))
+    t_beta = np.zeros((k, 3))
     S_beta = np.zeros((k, 6, 6))
+    P_R = np.empty((int((kept - start).max()) + 2 if k else 1, 3, 3))
+    Q = np.empty((3, 3))
     for j in range(k):
         length = kept[j] - start[j] + 1
-        P_R = np.empty((length, 3, 3))
-        R = np.eye(3)
-        t = np.zeros(3)
+        P_R[0] = np.eye(3)
         for i in range(length):
             pos = start[j] + i
-            t = t + geo.mulv3(R, k_t[pos])
-            R = geo.mul3(R, k_R[pos])
-            P_R[i] = R
-        R_beta[j] = R
-        t_beta[j] = t
+            geo.add_mulv3(P_R[i], k_t[pos], t_beta[j])
+            geo.mul3_into(P_R[i], k_R[pos], P_R[i + 1])
+        R_beta[j] = P_R[length]
         for i in range(length):
-            Q = geo.mul3t(P_R[i], R)
-            Si = S[start[j] + i]
-            for a in range(2):
-                for b in range(2):
-                    block = geo.mul3t(Q, geo.mul3(np.ascontiguousarray(
-                        Si[3 * a:3 * a + 3, 3 * b:3 * b + 3]), Q))
-                    S_beta[j, 3 * a:3 * a + 3, 3 * b:3 * b + 3] += block
+            geo.mul3t_into(P_R[i + 1], R_beta[j], Q)
+            add_rotated_stiffness(S[start[j] + i], Q, S_beta[j])
     return R_beta, t_beta, S_beta
 
 
@@ -161,14 +171,12 @@ def tree_edge_constraints(
             k_t[i] = meas_t[e]
             S[i] = info[e]
             continue
-        Rinv = np.ascontiguousarray(meas_R[e].T)
-        k_R[i] = Rinv
-        k_t[i] = -geo.mulv3(Rinv, meas_t[e])
-        for a in range(2):
-            for b in range(2):
-                S[i, 3 * a:3 * a + 3, 3 * b:3 * b + 3] = geo.mul3t(meas_R[e], geo.mul3(
-                    np.ascontiguousarray(info[e, 3 * a:3 * a + 3, 3 * b:3 * b + 3]),
-                    meas_R[e]))
+        for a in range(3):
+            k_t[i, a] = 0.0
+            for b in range(3):
+                k_R[i, a, b] = meas_R[e, b, a]
+                k_t[i, a] -= meas_R[e, b, a] * meas_t[e, b]
+        add_rotated_stiffness(info[e], meas_R[e], S[i])
     return k_R, k_t, S, top
 
 
@@ -198,23 +206,23 @@ def merged_stiffness(
     out = np.empty((k, p, p))
     Sd = np.empty((p, p))
     raw = np.empty((p, p))
+    prefix = np.empty((3, 3, 3))  # three buffers: the parent's, the node's, the next
     for j in range(k):
-        R = np.eye(3)
+        prefix[0] = np.eye(3)
         x = np.zeros(3)
-        R_par = np.eye(3)
+        cur = 0
         for pos in range(start[j], kept[j] + 1):
             n = domain[pos]
-            R_par = R
-            x = x + geo.mulv3(R, tree_t[n])
-            R = geo.mul3(R, tree_R[n])
+            geo.add_mulv3(prefix[cur], tree_t[n], x)
+            geo.mul3_into(prefix[cur], tree_R[n], prefix[(cur + 1) % 3])
+            cur = (cur + 1) % 3
+        R = prefix[cur]
+        R_par = prefix[(cur + 2) % 3]
         _, _, Jb = endpoint_jacobians_one(0, np.eye(3), np.zeros(3), R, x, R_beta[j], t_beta[j])
         M = chain_jacobian_one(R_par, R, x, x)
+        dof_product_into(Jb, M, dof, raw)
         for a in range(p):
             for b in range(p):
-                acc = 0.0
-                for c in range(6):
-                    acc += Jb[dof[a], c] * M[c, dof[b]]
-                raw[a, b] = acc
                 Sd[a, b] = S_beta[j, dof[a], dof[b]]
         out[j] = raw.T @ Sd @ raw
     return out
@@ -254,57 +262,75 @@ def distribute_into(
     nodes in between take a share of the rotation and translation in proportion to their
     cumulative compliance, keeping the path continuous.
     """
+    longest = int((kept - start).max()) + 1 if len(kept) else 1
+    H_R = np.empty((longest, 3, 3))
+    H_x = np.empty((longest, 3))
+    frac = np.empty(longest)
+    R_new = np.empty((longest, 3, 3))
+    local_R = np.empty((longest, 3, 3))
+    x_rot = np.empty((longest, 3))
+    eye = np.eye(3)
+    E = np.empty((3, 3))
+    tmp = np.empty((3, 3))
+    acc_R = np.empty((3, 3))
+    target_R = np.empty((3, 3))
     for j in range(len(kept)):
         s0 = start[j]
         length = kept[j] - s0 + 1
-        H_R = np.empty((length, 3, 3))
-        H_x = np.empty((length, 3))
-        R = np.eye(3)
+        R = eye
         x = np.zeros(3)
         total = 0.0
         for i in range(length):
             n = domain[s0 + i]
-            x = x + geo.mulv3(R, tree_t[n])
-            R = geo.mul3(R, tree_R[n])
-            H_R[i] = R
+            geo.add_mulv3(R, tree_t[n], x)
             H_x[i] = x
+            geo.mul3_into(R, tree_R[n], H_R[i])
+            R = H_R[i]
             total += compliance[s0 + i]
         # Target of the kept node in its segment's frame: its parent's pose times its local
         # transform with the step applied.
         last = domain[kept[j]]
-        if length > 1:
-            par_R = H_R[length - 2]
-            par_x = H_x[length - 2]
-        else:
-            par_R = np.eye(3)
-            par_x = np.zeros(3)
-        target_R = geo.mul3(par_R, geo.mul3(tree_R[last], geo.so3_exp_one(step[j, 3:])))
-        target_x = par_x + geo.mulv3(par_R, tree_t[last] + step[j, :3])
-        omega = geo.so3_log_one(geo.mul3(target_R, np.ascontiguousarray(H_R[length - 1].T)))
+        par_R = H_R[length - 2] if length > 1 else eye
+        target_x = H_x[length - 2].copy() if length > 1 else np.zeros(3)
+        geo.add_mulv3(par_R, tree_t[last] + step[j, :3], target_x)
+        geo.so3_exp_into(step[j, 3:], E)
+        geo.mul3_into(tree_R[last], E, tmp)
+        geo.mul3_into(par_R, tmp, target_R)
+        # ω: the turn that takes the segment's end from its rotation to the target's.
+        for a in range(3):
+            for b in range(3):
+                tmp[a, b] = (target_R[a, 0] * H_R[length - 1, b, 0]
+                             + target_R[a, 1] * H_R[length - 1, b, 1]
+                             + target_R[a, 2] * H_R[length - 1, b, 2])
+        omega = geo.so3_log_one(tmp)
         # Turn the segment: node i's pose rotates by its share of ω.
-        frac = np.empty(length)
-        R_new = np.empty((length, 3, 3))
-        local_R = np.empty((length, 3, 3))
-        x_rot = np.empty((length, 3))
-        R_prev = np.eye(3)
-        acc_R = np.eye(3)
+        acc_R[:] = eye
         acc_x = np.zeros(3)
         cum = 0.0
+        R_prev = eye
         for i in range(length):
             cum += compliance[s0 + i]
             frac[i] = cum / total
-            R_new[i] = geo.mul3(geo.so3_exp_one(frac[i] * omega), H_R[i])
-            local_R[i] = geo.mul3t(R_prev, R_new[i])
+            geo.so3_exp_into(frac[i] * omega, E)
+            geo.mul3_into(E, H_R[i], R_new[i])
+            geo.mul3t_into(R_prev, R_new[i], local_R[i])
             R_prev = R_new[i]
-            acc_x = acc_x + geo.mulv3(acc_R, tree_t[domain[s0 + i]])
-            acc_R = geo.mul3(acc_R, local_R[i])
+            geo.add_mulv3(acc_R, tree_t[domain[s0 + i]], acc_x)
+            geo.mul3_into(acc_R, local_R[i], tmp)
+            acc_R[:] = tmp
             x_rot[i] = acc_x
         # Then shift it: node i's position moves by its share of the kept node's miss.
         miss = target_x - x_rot[length - 1]
         x_prev = np.zeros(3)
         for i in range(length):
-            x_new = x_rot[i] + frac[i] * miss
             n = domain[s0 + i]
-            tree_t[n] = x_new - x_prev if i == 0 else geo.mulv3t(R_new[i - 1], x_new - x_prev)
-            tree_R[n] = geo.renormalize_one(local_R[i])
-            x_prev = x_new
+            for a in range(3):
+                tmp[0, a] = x_rot[i, a] + frac[i] * miss[a] - x_prev[a]
+                x_prev[a] += tmp[0, a]
+            if i == 0:
+                tree_t[n] = tmp[0]
+            else:
+                for a in range(3):
+                    tree_t[n, a] = (R_new[i - 1, 0, a] * tmp[0, 0] + R_new[i - 1, 1, a] * tmp[0, 1]
+                                    + R_new[i - 1, 2, a] * tmp[0, 2])
+            geo.renormalize_into(local_R[i], tree_R[n])

@@ -134,16 +134,43 @@ def _chain_jacobians_many(R_parent: Array, R_node: Array, x_node: Array, x_end: 
 
 
 @kernel
+def chain_jacobian_into(
+    R_parent: Array, R_node: Array, x_node: Array, x_end: Array, M: Array
+) -> None:
+    """One block of :func:`chain_jacobians` into ``M`` ``(6, 6)``, whose lower-left block
+    must already be zero."""
+    v0 = x_end[0] - x_node[0]
+    v1 = x_end[1] - x_node[1]
+    v2 = x_end[2] - x_node[2]
+    for j in range(3):
+        # Column j of −[x_end − x_node]× R_node: R_node[:, j] × (x_end − x_node).
+        a0, a1, a2 = R_node[0, j], R_node[1, j], R_node[2, j]
+        M[0, 3 + j] = a1 * v2 - a2 * v1
+        M[1, 3 + j] = a2 * v0 - a0 * v2
+        M[2, 3 + j] = a0 * v1 - a1 * v0
+        for i in range(3):
+            M[i, j] = R_parent[i, j]
+            M[3 + i, 3 + j] = R_node[i, j]
+
+
+@kernel
 def chain_jacobian_one(R_parent: Array, R_node: Array, x_node: Array, x_end: Array) -> Array:
     """One block of :func:`chain_jacobians`, ``(6, 6)``."""
     M = np.zeros((6, 6))
-    swing = geo.mul3(geo.hat_one(x_end - x_node), R_node)
-    for i in range(3):
-        for j in range(3):
-            M[i, j] = R_parent[i, j]
-            M[i, 3 + j] = -swing[i, j]
-            M[3 + i, 3 + j] = R_node[i, j]
+    chain_jacobian_into(R_parent, R_node, x_node, x_end, M)
     return M
+
+
+@kernel
+def dof_product_into(Je: Array, M: Array, dof: np.ndarray, out: Array) -> None:
+    """``out = (Je M)[dof, dof]``: a node's raw Jacobian block in the coordinates in use."""
+    p = len(dof)
+    for a in range(p):
+        for b in range(p):
+            acc = 0.0
+            for k in range(6):
+                acc += Je[dof[a], k] * M[k, dof[b]]
+            out[a, b] = acc
 
 
 @kernel
@@ -166,39 +193,40 @@ def path_linearization(
     la = len(a_chain)
     lb = len(b_chain)
     p = len(dof)
-    R_par = np.empty((la + lb, 3, 3))
-    R_all = np.empty((la + lb, 3, 3))
+    # Poses in the root's frame: R_all[i], x_all[i] of node i, R_all[i - 1] its parent's.
+    R_all = np.empty((la + lb + 2, 3, 3))
     x_all = np.empty((la + lb, 3))
     ends_R = np.empty((2, 3, 3))
-    ends_x = np.empty((2, 3))
+    ends_x = np.zeros((2, 3))
     for c in range(2):
         chain = a_chain if c == 0 else b_chain
         off = 0 if c == 0 else la
-        R = np.eye(3)
-        x = np.zeros(3)
+        R = ends_R[c]
+        R[:] = np.eye(3)
+        x = ends_x[c]
         for i in range(len(chain)):
             n = chain[i]
-            R_par[off + i] = R
-            x = x + geo.mulv3(R, tree_t[n])
-            R = geo.mul3(R, tree_R[n])
-            R_all[off + i] = R
+            geo.add_mulv3(R, tree_t[n], x)
             x_all[off + i] = x
+            geo.mul3_into(R, tree_R[n], R_all[off + i])
+            R = R_all[off + i]
         ends_R[c] = R
-        ends_x[c] = x
     e, Ja, Jb = endpoint_jacobians_one(kind, ends_R[0], ends_x[0], ends_R[1], ends_x[1], Rk, tk)
     J = np.empty((la + lb, p, p))
     raw = np.empty((p, p))
+    M = np.zeros((6, 6))
+    eye = np.eye(3)
     for i in range(la + lb):
         end = 0 if i < la else 1
-        Je = Ja if end == 0 else Jb
-        M = chain_jacobian_one(R_par[i], R_all[i], x_all[i], ends_x[end])
+        R_par = eye if i == 0 or i == la else R_all[i - 1]
+        chain_jacobian_into(R_par, R_all[i], x_all[i], ends_x[end], M)
+        dof_product_into(Ja if end == 0 else Jb, M, dof, raw)
         for a in range(p):
             for b in range(p):
                 acc = 0.0
-                for k in range(6):
-                    acc += Je[dof[a], k] * M[k, dof[b]]
-                raw[a, b] = acc
-        J[i] = W @ raw
+                for k in range(p):
+                    acc += W[a, k] * raw[k, b]
+                J[i, a, b] = acc
     r = np.empty(p)
     for a in range(p):
         r[a] = e[dof[a]]
