@@ -51,6 +51,7 @@ from results_md import command, replace_section, revision
 
 from h2o_slam import geometry as geo
 from h2o_slam import lago as lago_mod
+from h2o_slam import spd
 from h2o_slam.g2o import read_g2o
 from h2o_slam.graph import PoseGraph, chi2
 from h2o_slam.lago import lago, lago_estimate, solve_spd
@@ -212,8 +213,7 @@ def run_cli(path: Path, out_dir: Path, row: Row) -> None:
 
 
 def factorization_methods() -> list[str]:
-    methods = ["cholmod"] if lago_mod._cholmod() is not None else []
-    return methods + ["splu-mmd", "splu-colamd", "spsolve"]
+    return [m for m in lago_mod.FACTORIZATIONS[1:] if m not in spd.PACKAGES or spd.available(m)]
 
 
 def run_factorizations(graph: PoseGraph, row: Row, repeats: int) -> None:
@@ -365,15 +365,16 @@ Notes:
   the starting estimate. "passes to {TARGET}× opt" is the first pass at or below
   {TARGET} × opt.
 - Factorizations: `solve_spd(Ω_x, b, method)` on the phase-3 matrix, and the whole
-  `lago(graph, factorization=method)`; "cholmod" is scikit-sparse's CHOLMOD (column absent
-  when scikit-sparse is not installed), "splu-mmd" SuperLU with MMD on Aᵀ+A in symmetric
-  mode, "splu-colamd" SuperLU's default ordering, "spsolve" scipy's default.
+  `lago(graph, factorization=method)`; "cholmod" is CHOLMOD from cvxopt's wheel (the
+  default), "qdldl" OSQP's LDLᵀ (columns absent when the package is not installed),
+  "splu-mmd" SuperLU with MMD on Aᵀ+A in symmetric mode, "splu-colamd" SuperLU's default
+  ordering, "spsolve" scipy's default.
 """
 
 
 def _machine() -> str:
     versions = []
-    for pkg in ("numpy", "scipy", "gtsam", "scikit-sparse"):
+    for pkg in ("numpy", "scipy", "gtsam", "cvxopt", "qdldl"):
         try:
             versions.append(f"{pkg} {metadata.version(pkg)}")
         except metadata.PackageNotFoundError:

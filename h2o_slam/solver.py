@@ -134,6 +134,7 @@ class H2OSolver:
         #: χ² of the edge most recently added, at the moment it was added.
         self.last_chi2 = 0.0
         self._world: WorldSystem | None = None
+        self._world_memo: tuple[PoseTree, np.ndarray, Array, Array, Array, Array] | None = None
 
     # -- building -----------------------------------------------------------------------------
 
@@ -244,6 +245,25 @@ class H2OSolver:
             self._gps_at.setdefault(int(b), []).append(edge)
         return edge
 
+    def _extend_edges(self, graph: PoseGraph) -> None:
+        """:meth:`_append_edge` for every edge of ``graph`` at once (array copies and one
+        batched whitening instead of a call per edge)."""
+        first = self.num_edges
+        self._edges.extend(graph.kind, graph.a, graph.b, graph.meas_R, graph.meas_t,
+                           graph.info, self.dof)
+        incident, gps_at = self._incident, self._gps_at
+        global_kind = graph.kind != EdgeKind.RELATIVE
+        for e, (a, b, glob) in enumerate(
+                zip(graph.a.tolist(), graph.b.tolist(), global_kind.tolist(), strict=True),
+                start=first):
+            incident.setdefault(b, []).append(e)
+            if a != EARTH:
+                incident.setdefault(a, []).append(e)
+            if glob:
+                gps_at.setdefault(b, []).append(e)
+        self._paths.extend([None] * graph.num_edges)
+        self._contrib.extend([None] * graph.num_edges)
+
     def _grow_B(self) -> None:
         if self.tree.n > len(self.B):
             extra = len(self.B)
@@ -266,11 +286,7 @@ class H2OSolver:
         solver.tree = PoseTree.from_parents(parents, graph.R, graph.t)
         solver.B = np.zeros((graph.num_nodes, solver.p, solver.p))
         solver.tree_edge, solver.tree_edge_forward = _tree_edges(graph, parents)
-        for e in range(graph.num_edges):
-            solver._append_edge(
-                int(graph.kind[e]), int(graph.a[e]), int(graph.b[e]),
-                graph.meas_R[e], graph.meas_t[e], graph.info[e],
-            )
+        solver._extend_edges(graph)
         for e in range(graph.num_edges):
             lin = solver.linearize(e)
             contrib = _gram(lin.J)
@@ -299,8 +315,24 @@ class H2OSolver:
         return 0 if root == EARTH else int(self.tree.depth[root])
 
     def world_poses(self) -> tuple[Array, Array]:
-        """World poses of all nodes, shapes ``(N, 3, 3)`` and ``(N, 3)``."""
-        return self.tree.world_poses()
+        """World poses of all nodes, shapes ``(N, 3, 3)`` and ``(N, 3)`` (new arrays).
+
+        The last answer is kept beside a copy of the tree it came from; asked again for an
+        unchanged tree (exact mode scores a step, then linearizes at it) it is copied, not
+        composed again level by level (40 ms on kitti_00's 4541-node, deep tree).
+        """
+        tree = self.tree
+        n = tree.n
+        memo = self._world_memo
+        if (memo is not None and memo[0] is tree and len(memo[1]) == n
+                and np.array_equal(memo[1], tree.parent[:n])
+                and np.array_equal(memo[2], tree.t[:n])
+                and np.array_equal(memo[3], tree.R[:n])):
+            return memo[4].copy(), memo[5].copy()
+        R, t = tree.world_poses()
+        self._world_memo = (tree, tree.parent[:n].copy(), tree.t[:n].copy(),
+                            tree.R[:n].copy(), R.copy(), t.copy())
+        return R, t
 
     def chi2(self, graph: PoseGraph) -> float:
         """χ² of ``graph`` (the graph this solver holds) at the solver's current estimate."""
@@ -708,6 +740,31 @@ class EdgeTable:
         self.W[e] = whitening(self.info[e], dof)
         self.m += 1
         return e
+
+    def extend(
+        self, kind: np.ndarray, a: np.ndarray, b: np.ndarray, meas_R: Array, meas_t: Array,
+        info: Array, dof: np.ndarray,
+    ) -> None:
+        """Store many edges at once (arrays with one row per edge), as :meth:`append` would
+        one by one."""
+        k = len(kind)
+        end = self.m + k
+        if end > len(self.kind):
+            capacity = max(end, 2 * len(self.kind))
+            for name in ("kind", "a", "b", "meas_R", "meas_t", "info", "W"):
+                old = getattr(self, name)
+                grown = np.zeros((capacity, *old.shape[1:]), dtype=old.dtype)
+                grown[: self.m] = old[: self.m]
+                setattr(self, name, grown)
+        s = slice(self.m, end)
+        self.kind[s], self.a[s], self.b[s] = kind, a, b
+        self.meas_R[s], self.meas_t[s], self.info[s] = meas_R, meas_t, info
+        S = self.info[s][:, dof[:, None], dof[None, :]]
+        try:  # all positive definite, the common case: the factor append's Cholesky gives
+            self.W[s] = np.swapaxes(np.linalg.cholesky(S), -1, -2)
+        except np.linalg.LinAlgError:
+            self.W[s] = [whitening(x, dof) for x in self.info[s]]
+        self.m = end
 
 
 def _tree_edges(graph: PoseGraph, parents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -319,3 +319,34 @@ def test_planar_updates_keep_every_rotation_exactly_about_z():
     R = solver.tree.R[: solver.tree.n]
     assert np.all(R[:, 2, 2] == 1.0)
     assert not np.any(R[:, 2, :2]) and not np.any(R[:, :2, 2])
+
+
+def test_edges_added_at_once_equal_edges_added_one_by_one():
+    graph = random_graph(41, False, n=10, loops=5, gps=3, orientation=2)
+    parents = np.concatenate([[EARTH], np.arange(graph.num_nodes - 1)])
+    bulk = H2OSolver.from_graph(graph, parents)
+    single = H2OSolver(graph.planar)
+    for e in range(graph.num_edges):
+        single._append_edge(int(graph.kind[e]), int(graph.a[e]), int(graph.b[e]),
+                            graph.meas_R[e], graph.meas_t[e], graph.info[e])
+    for name in ("kind", "a", "b", "meas_R", "meas_t", "info", "W"):
+        np.testing.assert_array_equal(getattr(bulk, name), getattr(single, name), err_msg=name)
+    assert bulk._incident == single._incident
+    assert bulk._gps_at == single._gps_at
+    assert len(bulk._paths) == len(bulk._contrib) == graph.num_edges
+
+
+def test_world_poses_follow_every_change_of_the_tree():
+    graph = random_graph(43, True, n=8, loops=3)
+    solver, _ = build_solver(graph)
+    R, t = solver.world_poses()
+    R[:] = 0.0  # the caller's copy: the kept answer is not touched
+    R2, t2 = solver.world_poses()
+    np.testing.assert_array_equal(t2, t)
+    assert not np.any(np.all(R2 == 0.0, axis=(1, 2)))
+    solver.tree.t[3, 0] += 1.0  # changed in place
+    R3, t3 = solver.world_poses()
+    expected = solver.tree.__class__.world_poses(solver.tree)
+    np.testing.assert_array_equal(t3, expected[1])
+    np.testing.assert_array_equal(R3, expected[0])
+    assert not np.array_equal(t3, t2)
