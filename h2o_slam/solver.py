@@ -863,30 +863,51 @@ class WorldSystem:
     ) -> None:
         self.a, self.b, self.free = a.copy(), b.copy(), free.copy()
         self.num_nodes, self.p = num_nodes, p
-        size = len(free) * p
-        self.size = size
-        # Column of H of each row of [J_a | J_b]ᵀ, -1 where the node is held; col[-1] is
-        # the earth's.
-        col = np.full(num_nodes + 1, -1, dtype=np.int64)
-        col[free] = np.arange(len(free)) * p
-        ends = np.stack([col[a], col[b]], axis=1)  # (m, 2)
-        var = np.where(ends[:, :, None] >= 0, ends[:, :, None] + np.arange(p), -1)
-        var = var.reshape(len(a), 2 * p)
-        rows, cols = var[:, :, None], var[:, None, :]
-        keep = ((rows >= 0) & (cols >= 0) & (rows <= cols)).ravel()
-        # Keys column-major, so that sorted keys are the CSC order; the whole diagonal is
-        # in the pattern (damping scales it, and a node without edges shows as singular).
-        keys = (cols * size + rows).ravel()[keep]
-        diag = np.arange(size, dtype=np.int64) * (size + 1)
-        unique, where = np.unique(np.concatenate([keys, diag]), return_inverse=True)
-        self.nnz = len(unique)
-        self._scatter = np.full(keep.size, self.nnz, dtype=np.int64)
-        self._scatter[keep] = where[: len(keys)]
-        self._diag = where[len(keys):]
-        self._gather = np.where(var >= 0, var, size).ravel()
-        self.indices = unique % max(size, 1)
-        self.indptr = np.concatenate(
-            [[0], np.cumsum(np.bincount(unique // max(size, 1), minlength=size))])
+        nf = len(free)
+        self.size = size = nf * p
+        # Block column of each edge's endpoints, -1 where held (block[-1]: the earth's).
+        block = np.full(num_nodes + 1, -1, dtype=np.int64)
+        block[free] = np.arange(nf)
+        ends = np.stack([block[a], block[b]], axis=1)  # (m, 2)
+        # Off-diagonal blocks (upper: row block < column block), sorted column-major; each
+        # edge's rank among the blocks of its column. Diagonal blocks: every free node.
+        both = np.all(ends >= 0, axis=1)
+        lo, hi = ends.min(axis=1), ends.max(axis=1)
+        keys, which = np.unique(hi[both] * nf + lo[both], return_inverse=True)
+        key_col, key_row = keys // max(nf, 1), keys % max(nf, 1)
+        first = np.searchsorted(key_col, np.arange(nf))
+        per_col = np.bincount(key_col, minlength=nf)  # off-diagonal blocks per block column
+        rank = np.full(len(a), -1, dtype=np.int64)
+        rank[both] = which - first[hi[both]]
+        # CSC: scalar column (j, v) holds its off-diagonal blocks' p rows each, then the
+        # diagonal block's rows u ≤ v.
+        u = np.arange(p)
+        counts = (per_col[:, None] * p + u + 1).ravel()
+        self.indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self.nnz = nnz = int(self.indptr[-1])
+        start = self.indptr[:-1].reshape(nf, p)  # first entry of scalar column (j, v)
+        self.indices = np.empty(nnz, dtype=np.int64)
+        off = start[key_col][:, None, :] + ((np.arange(len(keys)) - first[key_col]) * p)[
+            :, None, None] + u[None, :, None]  # (blocks, u, v)
+        self.indices[off.ravel()] = np.broadcast_to(
+            (key_row * p)[:, None, None] + u[None, :, None], off.shape).ravel()
+        upper_uv = u[:, None] <= u[None, :]
+        diag = start[:, None, :] + (per_col * p)[:, None, None] + u[None, :, None]
+        rows = np.broadcast_to((np.arange(nf) * p)[:, None, None] + u[None, :, None], diag.shape)
+        self.indices[diag[:, upper_uv].ravel()] = rows[:, upper_uv].ravel()
+        self._diag = (start + (per_col * p)[:, None] + u).ravel()
+        # Where each entry (s, t) of an edge's [J_a | J_b]ᵀ[J_a | J_b] goes (nnz: dropped).
+        side = np.repeat([0, 1], p)
+        uu = np.tile(u, 2)
+        rs = ends[:, side][:, :, None]
+        ct = ends[:, side][:, None, :]
+        us, vt = uu[None, :, None], uu[None, None, :]
+        keep = (rs >= 0) & (ct >= 0) & ((rs < ct) | ((rs == ct) & (us <= vt)))
+        blk = np.where(rs == ct, per_col[ct], rank[:, None, None])
+        pos = self.indptr[ct * p + vt] + blk * p + us
+        self._scatter = np.where(keep, pos, nnz).ravel()
+        var = np.where(ends[:, side] >= 0, ends[:, side] * p + uu, size)
+        self._gather = var.ravel()
         self.factor = SPDFactor(self.indptr, self.indices)
 
     def fits(self, a: np.ndarray, b: np.ndarray, free: np.ndarray, num_nodes: int) -> bool:

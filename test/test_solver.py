@@ -231,6 +231,10 @@ def test_exact_system_reused_across_steps_gives_the_fresh_step(planar):
         np.testing.assert_allclose(H.toarray(), H_dense, rtol=1e-12, atol=1e-9)
         np.testing.assert_allclose(g, dense.T @ r.ravel(), rtol=1e-12, atol=1e-9)
         data, _ = system.assemble(J, r, damping)
+        # The pattern is CSC with sorted, distinct rows in every column (what CHOLMOD reads).
+        for j in range(system.size):
+            rows = system.indices[system.indptr[j]:system.indptr[j + 1]]
+            assert np.all(np.diff(rows) > 0) and rows[-1] == j
         damped = H_dense + damping * np.diag(np.diag(H_dense))
         np.testing.assert_allclose(system.matrix(data).toarray(), damped, rtol=1e-12,
                                    atol=1e-9)
