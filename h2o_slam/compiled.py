@@ -65,9 +65,8 @@ def warm_up() -> None:
 
     from h2o_slam import geometry as geo
     from h2o_slam.graph import EARTH, EdgeKind
-    from h2o_slam.solver import H2OSolver
-
     from h2o_slam.jacobians import chain_jacobians, endpoint_jacobians
+    from h2o_slam.solver import H2OSolver
 
     geo.so3_exp(np.zeros(3))
     geo.so3_log(np.eye(3))

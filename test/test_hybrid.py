@@ -87,3 +87,19 @@ def test_large_domains_match_normal_equations(d):
     for i in range(d):
         H[6 * i:6 * i + 6, 6 * i:6 * i + 6] += B[i]
     assert np.allclose(x, np.linalg.solve(H, -Jf.T @ r), rtol=1e-8, atol=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), p=st.sampled_from([1, 3, 6]), rank=st.integers(0, 6))
+def test_jacobi_eigen_decomposes_symmetric_blocks(seed, p, rank):
+    from h2o_slam.hybrid import symmetric_eigen_into
+
+    rng = np.random.default_rng(seed)
+    G = rng.normal(size=(min(rank, p), p)) * rng.uniform(0.01, 100.0)
+    A = G.T @ G
+    lam, V, work = np.empty(p), np.empty((p, p)), np.empty((p, p))
+    symmetric_eigen_into(A, lam, V, work)
+    scale = max(np.abs(A).max(), 1e-300)
+    np.testing.assert_allclose(V.T @ V, np.eye(p), atol=1e-13)
+    np.testing.assert_allclose(A @ V, V * lam, atol=1e-13 * scale)
+    np.testing.assert_allclose(np.sort(lam), np.linalg.eigvalsh(A), atol=1e-13 * scale)
