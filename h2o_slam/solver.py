@@ -278,16 +278,23 @@ class H2OSolver:
 
     @classmethod
     def from_graph(
-        cls, graph: PoseGraph, parents: np.ndarray, config: SolverConfig | None = None
+        cls, graph: PoseGraph, parents: np.ndarray, config: SolverConfig | None = None,
+        regularizer: bool = True,
     ) -> H2OSolver:
         """A solver over all of ``graph`` with the given spanning tree, starting from the
-        graph's estimate; ``B`` holds every edge's contribution at that estimate."""
+        graph's estimate; ``B`` holds every edge's contribution at that estimate.
+
+        ``regularizer=False`` leaves ``B`` empty and no edge contributing (as
+        ``add_edge(..., contribute=False)``): for exact mode, which never reads ``B``,
+        building it is a linearization of every edge along its tree path (0.4 s of
+        city10000's 1 s).
+        """
         solver = cls(graph.planar, config)
         solver.tree = PoseTree.from_parents(parents, graph.R, graph.t)
         solver.B = np.zeros((graph.num_nodes, solver.p, solver.p))
         solver.tree_edge, solver.tree_edge_forward = _tree_edges(graph, parents)
         solver._extend_edges(graph)
-        for e in range(graph.num_edges):
+        for e in range(graph.num_edges if regularizer else 0):
             lin = solver.linearize(e)
             contrib = _gram(lin.J)
             solver.B[lin.domain] += contrib

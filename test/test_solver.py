@@ -354,3 +354,18 @@ def test_world_poses_follow_every_change_of_the_tree():
     np.testing.assert_array_equal(t3, expected[1])
     np.testing.assert_array_equal(R3, expected[0])
     assert not np.array_equal(t3, t2)
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_exact_steps_do_not_need_the_regularizer(planar):
+    graph = random_graph(47, planar, n=10, loops=5, gps=2)
+    parents = np.concatenate([[EARTH], np.arange(graph.num_nodes - 1)])
+    full = H2OSolver.from_graph(graph, parents, UNCAPPED)
+    bare = H2OSolver.from_graph(graph, parents, UNCAPPED, regularizer=False)
+    assert not np.any(bare.B[: bare.num_nodes]) and bare.contribution_size(0) == 0
+    for solver in (full, bare):
+        step, nodes = solver.exact_step()
+        solver.apply_step(nodes, step)
+    np.testing.assert_array_equal(bare.world_poses()[1], full.world_poses()[1])
+    bare.relax(graph.num_edges - 1)  # an edge without a contribution yet relaxes as usual
+    assert bare.contribution_size(graph.num_edges - 1) > 0
