@@ -206,6 +206,7 @@ def merged_stiffness(
     out = np.empty((k, p, p))
     Sd = np.empty((p, p))
     raw = np.empty((p, p))
+    tmp = np.empty((p, p))
     prefix = np.empty((3, 3, 3))  # three buffers: the parent's, the node's, the next
     for j in range(k):
         prefix[0] = np.eye(3)
@@ -224,7 +225,18 @@ def merged_stiffness(
         for a in range(p):
             for b in range(p):
                 Sd[a, b] = S_beta[j, dof[a], dof[b]]
-        out[j] = raw.T @ Sd @ raw
+        for a in range(p):  # Sd raw, then rawᵀ (Sd raw): loops beat two tiny BLAS calls
+            for b in range(p):
+                acc = 0.0
+                for c in range(p):
+                    acc += Sd[a, c] * raw[c, b]
+                tmp[a, b] = acc
+        for a in range(p):
+            for b in range(p):
+                acc = 0.0
+                for c in range(p):
+                    acc += raw[c, a] * tmp[c, b]
+                out[j, a, b] = acc
     return out
 
 

@@ -466,14 +466,18 @@ class H2OSolver:
             self.tree.R, self.tree.t, dom, kept, start, R_b, t_b, S_b, self.dof)
         tops_before = np.concatenate([[0], np.cumsum(top)])
         has_top = tops_before[kept + 1] > tops_before[start]
+        # α, the kept node's own tree edge, gives way to β where its contribution to B is
+        # that node's alone (its path is the tree edge); otherwise the segment keeps B.
         contrib = self._contrib
-        for j, (node, edge) in enumerate(zip(dom[kept].tolist(),
-                                             self.tree_edge[dom[kept]].tolist(), strict=True)):
-            alpha = contrib[edge] if edge >= 0 else None
-            if has_top[j] or alpha is None or len(alpha[0]) != 1 or alpha[0][0] != node:
-                adjust[j] = 0.0
-            else:
-                adjust[j] -= alpha[1][0]
+        nodes = dom[kept]
+        alphas = [contrib[e] if e >= 0 else None for e in self.tree_edge[nodes].tolist()]
+        own = [a is not None and len(a[0]) == 1 and a[0][0] == n
+               for a, n in zip(alphas, nodes.tolist(), strict=True)]
+        use = np.array(own, dtype=bool) & ~has_top
+        adjust[~use] = 0.0
+        if np.any(use):
+            adjust[use] -= np.stack([a[1][0] for a, u in zip(alphas, use, strict=True)
+                                     if u and a is not None])
         return adjust
 
     def _compliance(self, B: Array) -> Array:
