@@ -86,3 +86,20 @@ def test_unknown_and_missing_backends_are_refused(monkeypatch):
     assert spd.resolve("auto") == "splu"
     with pytest.raises(ValueError, match="needs the qdldl package"):
         spd.resolve("qdldl")
+
+
+@pytest.mark.skipif(not spd.available("cholmod"), reason="cvxopt not installed")
+def test_cvxopt_options_are_left_as_found():
+    from cvxopt import cholmod
+
+    H = random_spd(6)
+    g = np.ones(H.shape[0])
+    assert "supernodal" not in cholmod.options
+    solve_spd(H, g, "cholmod")
+    assert "supernodal" not in cholmod.options
+    cholmod.options["supernodal"] = 2
+    try:
+        solve_spd(H, g, "cholmod")
+        assert cholmod.options["supernodal"] == 2
+    finally:
+        del cholmod.options["supernodal"]
