@@ -17,11 +17,13 @@ from h2o_slam.graph import EdgeKind
 from h2o_slam.modes import build_solver
 from h2o_slam.solver import H2OSolver, whitening
 
+#: The kernels Python calls; the ones they call (``so3_exp_into``, ``symmetric_eigen_into``…)
+#: are compiled into them.
 KERNELS = [
     geo._so3_exp_many, geo._so3_log_many, geo._right_jacobian_inv_many,
     geo._renormalize_many, jacobians._endpoint_jacobians_many, jacobians._chain_jacobians_many,
-    jacobians.path_linearization, hybrid.solve_hybrid, hybrid.symmetric_eigen_into,
-    solver._scale_and_apply, solver._store_contribution,
+    jacobians.path_linearization, hybrid.solve_hybrid, solver._scale_and_apply,
+    solver._store_contribution,
     solver._capped_scale, solver._apply_local, solver._gram, interpolate.distribute_into,
     interpolate._merge_segments, interpolate.tree_edge_constraints,
     interpolate.merged_stiffness,
