@@ -11,10 +11,10 @@ the pattern of ``JᵀJ``). Backends, in the order ``auto`` tries them:
 * ``splu`` — scipy's SuperLU in symmetric mode, minimum-degree ordering on ``Aᵀ + A`` and
   diagonal pivots; always installed, no symbolic reuse.
 
-Measured on the public graphs' LAGO and exact-mode matrices (README, "Dependencies and
-why"): CHOLMOD's numeric refactorization is 1.5–5× faster than QDLDL's on every matrix but
-the sparsest (kitti_00, where both take 2–6 ms), and a fresh CHOLMOD factorization 2–4×
-faster than SuperLU's.
+Measured on the public graphs' LAGO and exact-mode matrices (``bench/spd.py``; README,
+"Dependencies and why"): CHOLMOD's numeric refactorization is 2–7× faster than QDLDL's on
+city10000, parking-garage and sphere2500 and within 10 % of it on the sparsest planar
+systems; a fresh CHOLMOD factorization is 2–4× faster than SuperLU's.
 
 A backend that finds no factor (the matrix is not positive definite to working precision)
 hands over to ``splu``; when that fails too :class:`numpy.linalg.LinAlgError` is raised.
