@@ -345,8 +345,8 @@ Notes:
   run (not a certified global optimum).
 - H₂O: `h2o-solve IN --output OUT --mode exact --report R.json` (default 20 iterations) and
   `--mode offline --passes 10`, run as subprocesses. Its time is `wall_s` of the report:
-  the solve only, without interpreter start-up and file I/O (the whole process time is in
-  the checks table).
+  the solve only, without interpreter start-up, the compiled kernels' loading and file I/O
+  (the whole process time is in the checks table).
 - GTSAM LM: `LevenbergMarquardtOptimizer`, max {LM_MAX_ITERATIONS} iterations, relative
   and absolute error tolerance {LM_RELATIVE_TOL:g} / {LM_ABSOLUTE_TOL:g}, default lambda
   schedule; BetweenFactorPose2/Pose3 with `noiseModel.Gaussian.Information` of the same
