@@ -80,7 +80,8 @@ INITS = ("input", "tree", "lago")
 
 
 def build_solver(
-    graph: PoseGraph, config: SolverConfig | None = None, init: str = "tree"
+    graph: PoseGraph, config: SolverConfig | None = None, init: str = "tree",
+    regularizer: bool = True,
 ) -> tuple[H2OSolver, PoseGraph]:
     """A solver over the whole graph on a breadth-first spanning tree of its relative edges.
 
@@ -88,6 +89,7 @@ def build_solver(
     ``init="tree"`` starts, as the thesis does (3.4.2), from the tree edges' measurements
     concatenated down from the root, so that every tree edge starts with zero error;
     ``init="lago"`` starts from the LAGO linear approximation (planar graphs only).
+    ``regularizer=False`` skips building ``B`` (exact mode never reads it).
 
     Returns the solver and the graph holding the starting estimate.
     """
@@ -103,7 +105,7 @@ def build_solver(
         # LAGO starts from the relative edges; GPS edges are H₂O's to relax afterwards.
         start = lago(graph, ignore_global=True)
         graph = graph.with_estimate(start.R, start.t)
-    return H2OSolver.from_graph(graph, parents, config), graph
+    return H2OSolver.from_graph(graph, parents, config, regularizer), graph
 
 
 def tree_estimate(graph: PoseGraph, parents: np.ndarray) -> tuple[Array, Array]:
@@ -172,7 +174,7 @@ def solve_exact(
 ) -> SolveResult:
     """Gauss–Newton on the batch of all edges, with Levenberg damping when χ² would rise,
     until χ² stops falling or ``iterations`` run out; see :func:`build_solver` for ``init``."""
-    solver, start = build_solver(graph, config, init)
+    solver, start = build_solver(graph, config, init, regularizer=False)
     history, converged = converge_exact(solver, iterations)
     result = SolveResult(start.R.copy(), start.t.copy(), history[0], history[1:])
     result.converged = converged
