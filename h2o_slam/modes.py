@@ -16,7 +16,7 @@ the one evaluator :func:`h2o_slam.graph.chi2`.
 from __future__ import annotations
 
 import time
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -44,7 +44,8 @@ class SolveResult:
             i.e. what each callback had to spend (ms).
         chi2_trace: online mode: ``(cumulative callback seconds, χ²)`` samples.
         deferred_edges: online mode: edges still waiting when the last pose arrived.
-        converged: exact mode: χ² stopped falling before the iteration cap.
+        converged: exact mode: the relative χ² decrease fell to the tolerance (or no step
+            lowered χ²) before the iteration cap.
         chi2_end_of_stream: online mode: χ² when the last pose's callback returned.
         chi2_after_idle: online mode: χ² after the idle steps that follow.
         idle_steps: online mode: idle steps run after the last arrival.
@@ -52,6 +53,8 @@ class SolveResult:
         exact: online mode: what the exact solves beside the updates did.
         samples: online mode: ``(poses so far, χ² of their edges at the estimate then)``
             after the callback of each pose in ``sample_nodes`` (see :func:`sample_points`).
+        start: offline and exact modes: the starting estimate ``(R, t)`` (``chi2_initial``
+            is its χ²); ``None``: the graph's own.
     """
 
     R: Array
@@ -69,6 +72,7 @@ class SolveResult:
     idle_steps_between: int = 0
     samples: list[tuple[int, float]] = field(default_factory=list)
     exact: ConvergeState | None = None
+    start: tuple[Array, Array] | None = None
 
     @property
     def chi2_final(self) -> float:
@@ -77,6 +81,13 @@ class SolveResult:
 
 
 INITS = ("input", "tree", "lago")
+
+#: Most Gauss–Newton iterations of exact mode by default: a cap that converged graphs
+#: never reach (they stop at ``SolverConfig.exact_tolerance``, typically within 10–30).
+EXACT_ITERATIONS = 100
+
+#: ``progress(step, chi2)``: called after each pass of a solve.
+Progress = Callable[[int, float], None]
 
 
 def build_solver(
@@ -154,29 +165,38 @@ def offline_pass(solver: H2OSolver, order: list[int], d_max: int | None = None) 
 
 def solve_offline(
     graph: PoseGraph, passes: int = 10, config: SolverConfig | None = None, init: str = "tree",
-    d_max: int | None = None,
+    d_max: int | None = None, progress: Progress | None = None,
 ) -> SolveResult:
     """Relax the whole graph for ``passes`` passes (paper Algorithm 1); see
-    :func:`build_solver` for ``init``; ``d_max`` bounds the nodes solved for per edge."""
+    :func:`build_solver` for ``init``; ``d_max`` bounds the nodes solved for per edge;
+    ``progress`` is called after each pass."""
     solver, start = build_solver(graph, config, init)
-    result = SolveResult(start.R.copy(), start.t.copy(), chi2(start))
+    result = SolveResult(start.R.copy(), start.t.copy(), chi2(start), start=(start.R, start.t))
     order = offline_order(solver)
-    for _ in range(passes):
+    for k in range(passes):
         offline_pass(solver, order, d_max)
         result.chi2_per_pass.append(solver.chi2(graph))
+        if progress is not None:
+            progress(k + 1, result.chi2_per_pass[-1])
     result.R, result.t = solver.world_poses()
     return result
 
 
 def solve_exact(
-    graph: PoseGraph, iterations: int = 20, config: SolverConfig | None = None,
+    graph: PoseGraph, iterations: int = EXACT_ITERATIONS, config: SolverConfig | None = None,
     init: str = "tree",
 ) -> SolveResult:
     """Gauss–Newton on the batch of all edges, with Levenberg damping when χ² would rise,
-    until χ² stops falling or ``iterations`` run out; see :func:`build_solver` for ``init``."""
+    until the relative χ² decrease falls to ``config.exact_tolerance`` or no step helps
+    (``result.converged``), or ``iterations`` run out; see :func:`build_solver` for ``init``.
+
+    ``result.chi2_per_pass`` holds the χ² after each iteration run (its length is the
+    iteration count).
+    """
     solver, start = build_solver(graph, config, init, regularizer=False)
     history, converged = converge_exact(solver, iterations)
-    result = SolveResult(start.R.copy(), start.t.copy(), history[0], history[1:])
+    result = SolveResult(start.R.copy(), start.t.copy(), history[0], history[1:],
+                         start=(start.R, start.t))
     result.converged = converged
     result.R, result.t = solver.world_poses()
     return result

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import io
 import json
+import time
 
 import numpy as np
 import pytest
 
+from h2o_slam.chi2_metrics import METRICS, all_chi2
+from h2o_slam.cli.common import ProgressLine
 from h2o_slam.cli.solve import main
 from h2o_slam.g2o import read_g2o, write_g2o
 from h2o_slam.graph import chi2
@@ -75,7 +79,7 @@ def test_period_needs_an_online_budget(planar_file, tmp_path, capsys):
     out = tmp_path / "o.g2o"
     code = main([str(planar_file), "--output", str(out), "--mode", "online", "--period-ms", "5"])
     err = capsys.readouterr().err.strip()
-    assert code == 1 and len(err.splitlines()) == 1 and "--period-ms" in err
+    assert code == 2 and len(err.splitlines()) == 1 and "--period-ms" in err
     assert not out.exists()
 
 
@@ -86,3 +90,113 @@ def test_paced_online_run_reports_its_period_and_idle_steps(planar_file, tmp_pat
     data = json.loads(report.read_text())
     assert data["period_ms"] == 3.0
     assert data["idle_steps_between"] > 0
+
+
+def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, list[str], str]:
+    """Exit code, stderr lines and stdout of ``h2o-solve argv`` (argparse's exits too)."""
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    captured = capsys.readouterr()
+    return code, captured.err.strip().splitlines(), captured.out
+
+
+def test_default_is_exact_to_convergence_from_the_tree(planar_file, tmp_path, capsys):
+    out, report = tmp_path / "o.g2o", tmp_path / "r.json"
+    code, err, _ = run([str(planar_file), "-o", str(out), "--report", str(report), "-q"],
+                       capsys)
+    data = json.loads(report.read_text())
+    assert code == 0 and err == []
+    assert (data["mode"], data["init"], data["converged"]) == ("exact", "tree", True)
+    # passes is what ran, not the cap.
+    assert data["passes"] == data["iterations"] == len(data["chi2_per_pass"]) < 100
+    assert data["max_iterations"] == 100 and data["tolerance"] == 1e-10
+    graph = read_g2o(planar_file)
+    offline = tmp_path / "off.json"
+    assert main([str(planar_file), "-o", str(tmp_path / "off.g2o"), "--mode", "offline",
+                 "--report", str(offline), "-q"]) == 0
+    assert data["chi2_final"] <= json.loads(offline.read_text())["chi2_final"]
+    solved = read_g2o(out)
+    assert chi2(graph, solved.R, solved.t) == pytest.approx(data["chi2_final"], rel=1e-9)
+
+
+def test_exact_at_its_cap_says_so(planar_file, tmp_path, capsys):
+    report = tmp_path / "r.json"
+    code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--passes", "1",
+                        "--report", str(report), "-q"], capsys)
+    data = json.loads(report.read_text())
+    assert code == 0 and data["converged"] is False
+    assert data["passes"] == data["iterations"] == 1
+    assert len(err) == 1 and err[0].startswith("h2o-solve: warning: exact mode stopped at its "
+                                               "cap of 1 iterations"), err
+
+
+def test_a_loose_tolerance_stops_sooner(planar_file, tmp_path, capsys):
+    reports = []
+    for tol in ("1e-10", "0.5"):
+        report = tmp_path / f"r{tol}.json"
+        assert main([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--tolerance", tol,
+                     "--report", str(report), "-q"]) == 0
+        reports.append(json.loads(report.read_text()))
+    assert reports[1]["converged"] and reports[1]["tolerance"] == 0.5
+    assert reports[1]["iterations"] < reports[0]["iterations"]
+
+
+def test_lago_report_names_no_start(planar_file, tmp_path, capsys):
+    report = tmp_path / "r.json"
+    assert main([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--solver", "lago",
+                 "--report", str(report), "-q"]) == 0
+    data = json.loads(report.read_text())
+    assert (data["mode"], data["init"], data["passes"]) == ("lago", None, 0)
+    assert data["iterations"] is None
+
+
+@pytest.mark.parametrize("metric", METRICS)
+def test_metric_sets_the_reported_chi2_and_all_three_are_reported(planar_file, tmp_path,
+                                                                  metric, capsys):
+    cube = tmp_path / "cube.g2o"
+    write_g2o(cube, grid3d(20, seed=4).graph)
+    out, report = tmp_path / "o.g2o", tmp_path / "r.json"
+    assert main([str(cube), "-o", str(out), "--init", "input", "--metric", metric,
+                 "--report", str(report), "-q"]) == 0
+    data = json.loads(report.read_text())
+    graph, solved = read_g2o(cube), read_g2o(out)
+    assert data["metric"] == metric
+    assert data["chi2_metrics"]["initial"] == pytest.approx(all_chi2(graph))
+    assert data["chi2_metrics"]["final"] == pytest.approx(all_chi2(graph, solved.R, solved.t),
+                                                          rel=1e-9)
+    assert data["chi2_initial"] == data["chi2_metrics"]["initial"][metric]
+    assert data["chi2_final"] == data["chi2_metrics"]["final"][metric]
+    assert data["chi2_per_pass"][-1] == data["chi2_final"]
+
+
+@pytest.mark.parametrize("args, named", [
+    (["--passes", "-1"], "--passes"), (["--passes", "two"], "--passes"),
+    (["--tolerance", "2"], "--tolerance"), (["--tolerance", "nan"], "--tolerance"),
+    (["--d-max", "0"], "--d-max"), (["--budget-ms", "-1"], "--budget-ms"),
+    (["--budget-ms", "5"], "--budget-ms"), (["--gps-batch-size", "0"], "--gps-batch-size"),
+    (["--idle-s", "inf"], "--idle-s"), (["--samples", "-2"], "--samples"),
+    (["--metric", "ceres"], "--metric"), (["--mode", "fast"], "--mode"),
+])
+def test_usage_errors_exit_2_naming_the_argument(planar_file, tmp_path, args, named, capsys):
+    out = tmp_path / "o.g2o"
+    code, err, _ = run([str(planar_file), "-o", str(out), *args], capsys)
+    assert code == 2 and len(err) == 1 and err[0].startswith("h2o-solve: ") and named in err[0]
+    assert not out.exists()
+
+
+def test_progress_line_after_a_second_and_quiet(planar_file, tmp_path, capsys):
+    stream = io.StringIO()
+    with ProgressLine("h2o-solve", period_s=0.05, stream=stream) as line:
+        line.status = "offline: pass 3, chi2 12.5"
+        time.sleep(0.2)
+    lines = stream.getvalue().splitlines()
+    assert lines and all(x.startswith("h2o-solve: offline: pass 3, chi2 12.5 (") for x in lines)
+    stream = io.StringIO()
+    with ProgressLine("h2o-solve", period_s=0.05, stream=stream, enabled=False):
+        time.sleep(0.15)
+    assert stream.getvalue() == ""
+    # A solve shorter than the period prints nothing.
+    code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o")], capsys)
+    assert code == 0 and err == []

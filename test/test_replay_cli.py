@@ -219,7 +219,7 @@ def test_output_folder_in_use_is_refused_without_touching_it(
     out.mkdir()
     (out / "mine.txt").write_text("keep")
     code, err = run([str(bags["mcap"]), "--output", str(out), "--quiet"], capsys)
-    assert code == 1 and len(err) == 1 and "not empty" in err[0]
+    assert code == 2 and len(err) == 1 and "not empty" in err[0]
     assert sorted(p.name for p in out.iterdir()) == ["mine.txt"]
 
 

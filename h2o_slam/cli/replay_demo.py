@@ -7,13 +7,15 @@ hallucinated turns, GPS with dropouts, loop closures, ground truth), writes it a
 replays it with ``h2o-replay``'s machinery twice — with and without GPS — and prints ATE
 and final error of wheel odometry, hybrid VO, H₂O without GPS and H₂O with GPS. DIR
 (a new temporary folder when not given) receives the input bag (``input/``), everything
-the replay with GPS writes (``ground_truth.tum`` among it) and the replay without GPS in
-``no_gps/``.
+the replay with GPS writes (``replay/``, ``ground_truth.tum`` among it) and the replay
+without GPS (``no_gps/``).
+
+Exit codes as every command of the package (:mod:`h2o_slam.cli.common`): 2 for the command
+line (an output folder that is a file or not empty), 1 when the run fails.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import tempfile
@@ -22,6 +24,15 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from h2o_slam.cli.common import (
+    EXIT_INPUT,
+    OneLineParser,
+    integer,
+    missing_folders,
+    remove_if_empty,
+    unusable_folder,
+    usage_error,
+)
 from h2o_slam.errors import H2OError
 from h2o_slam.replay import ReplayOptions, replay
 from h2o_slam.replay_io import Storage, write_bag
@@ -29,6 +40,17 @@ from hybrid_vo import world
 from hybrid_vo.world_messages import drive_messages
 
 PROG = "h2o-demo"
+
+#: What ``h2o-demo --help`` says it does (the module docstring, without its markup).
+DESCRIPTION = (
+    "Simulate a drive (stereo camera, wheel odometry with slip and hallucinated turns, GPS "
+    "with dropouts, loop closures, ground truth), record it as a bag, replay it through "
+    "hybrid_vo_node and h2o_node twice (with and without GPS), and print the ATE and final "
+    "error of wheel odometry, hybrid VO, H2O without GPS and H2O with GPS. The output folder "
+    "receives the input bag in input/, the replay with GPS in replay/ (its outputs bag, TUM "
+    "trajectories with replay/ground_truth.tum, graph, plots and summary.json) and the "
+    "replay without GPS in no_gps/."
+)
 
 #: Where hybrid_vo.world puts the origin of its ENU frame (lat, lon, alt): the demo's
 #: surveyed datum, so that the map frame and the ground truth share their origin.
@@ -79,32 +101,36 @@ def table(rows: list[tuple[str, dict[str, float] | None]]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
-    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[2])
-    p.add_argument("--output", type=Path, help="folder for everything (default: a new "
-                   "temporary folder)")
-    p.add_argument("--seed", type=int, default=1, help="seed of the simulated drive")
-    p.add_argument("--laps", type=int, default=3, help="laps of the 36 s square")
-    p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    p = OneLineParser(prog=PROG, description=DESCRIPTION)
+    p.add_argument("--output", type=Path, metavar="DIR",
+                   help="folder for everything, new or empty (default: a new temporary "
+                        "folder)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the simulated drive (default 1)")
+    p.add_argument("--laps", type=integer(1), default=3,
+                   help="laps of the 36 s square (default 3)")
+    p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
+                   help="storage plugin of the bags written (default: mcap)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
-    if args.laps < 1:
-        p.error("--laps must be at least 1")
+    problem = unusable_folder("--output", args.output)
+    if problem is not None:
+        return usage_error(PROG, problem)
     output = args.output or Path(tempfile.mkdtemp(prefix="h2o-demo-"))
+    created = missing_folders(output) if args.output else [output]
     try:
-        if output.exists() and any(output.iterdir()):
-            raise H2OError(f"{output}: output folder exists and is not empty")
         output.mkdir(parents=True, exist_ok=True)
         result = run(output, args.seed, args.laps, args.storage, not args.quiet)
     except (H2OError, OSError) as exc:
+        remove_if_empty(created)
         print(f"{PROG}: {exc}", file=sys.stderr)
-        return 1
+        return EXIT_INPUT
     summary = result["summaries"]["with_gps"]
     print(f"simulated {result['frames']} stereo frames ({summary['bag_duration_s']:.0f} s), "
           f"recorded in {result['record_s']:.1f} s, replayed at "
           f"{summary['speed_x_realtime']:.1f}x real time")
     print(table(result["rows"]))
     print(f"everything is in {output} (input bag in input/, replay outputs in replay/ and "
-          "no_gps/)")
+          "no_gps/; ground truth in replay/ground_truth.tum)")
     return 0
 
 
