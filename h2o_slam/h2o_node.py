@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import gc
 import importlib
+import math
+import os
 import re
 import sys
 import time
@@ -56,7 +58,7 @@ from h2o_slam.errors import H2OError, InputError
 from h2o_slam.graph import EdgeKind, edge_chi2
 from h2o_slam.mapper import Mapper, MapperConfig, restore
 from h2o_slam.node_main import run_node
-from h2o_slam.timing import CallbackTimes
+from h2o_slam.timing import CallbackTimes, CostShare, InputHealth
 
 NODE_NAME = "h2o_node"
 
@@ -115,6 +117,12 @@ PARAMETERS: list[tuple[str, Any, str, tuple[float, float] | None]] = [
      "the input callbacks' budget; 0 disables (run-time).", (0.0, 1000.0)),
     ("idle_period", 0.05, "Seconds between idle steps; they run only while edges wait.",
      (0.001, 10.0)),
+    ("input_late_ms", 100.0, "An odometry or GPS message handled more than this many ms "
+     "after its stamp (less the smallest such delay seen) counts as late in /diagnostics.",
+     (0.1, 1e6)),
+    ("output_time_share", 0.05, "Largest share of the node's time for each periodic output "
+     "whose cost grows with the graph (graph topics, map->odom refresh, chi2 in "
+     "/diagnostics): its period stretches as the graph grows.", (0.001, 1.0)),
 ]
 
 #: Parameters whose changes take effect while running (the rest need a restart).
@@ -161,6 +169,7 @@ class H2ONode(Node):
         self._last_stamp_ns = 0
         self._graph_dirty = True
         self._tf_cls = _load_tf_message()
+        self._reset_load_state()
         self.mapper = self._start_mapper()
         self._datum = self._configured_datum()
         self._make_interfaces()
@@ -222,6 +231,24 @@ class H2ONode(Node):
             self.get_logger().info(f"no map saved at {path} yet: starting a new graph")
         return Mapper(self.mapper_config())
 
+    def _reset_load_state(self) -> None:
+        """Input health, the cached map->odom correction and χ², and the rate limits of the
+        outputs whose cost grows with the graph."""
+        late_ms = float(self.p("input_late_ms"))
+        share = float(self.p("output_time_share"))
+        self.health = {"odometry": InputHealth(late_ms), "gps": InputHealth(late_ms)}
+        self._last_odom_handled_ns = 0
+        #: ``map -> odom`` as of the last refresh (by the transform timer, or on demand).
+        self._map_to_odom: np.ndarray | None = None
+        self._chi2_cache: dict[str, object] | None = None
+        self._chi2_at_s = 0.0
+        self.shares = {
+            "graph": CostShare(float(self.p("graph_publish_period")), share),
+            "map_to_odom": CostShare(float(self.p("transform_publish_period")), share),
+            "chi2": CostShare(float(self.p("diagnostics_period")), share),
+        }
+        self.idle_yielded = 0
+
     def _configured_datum(self) -> ma.Datum | None:
         values = [float(v) for v in self.p("datum")]
         if self.mapper.datum is not None:
@@ -277,12 +304,12 @@ class H2ONode(Node):
         self.create_service(Trigger, "~/reset", guard("reset", self._srv_reset))
         self.create_service(SetBool, "~/pause", guard("pause", self._srv_pause))
         self.create_timer(float(self.p("graph_publish_period")),
-                          guard("graph_timer", self.publish_graph))
+                          guard("graph_timer", self._graph_timer))
         self.create_timer(float(self.p("transform_publish_period")),
-                          guard("map_to_odom_timer", self.publish_map_to_odom))
+                          guard("map_to_odom_timer", self._map_to_odom_timer))
         self.create_timer(float(self.p("diagnostics_period")),
-                          guard("diagnostics_timer", self.publish_diagnostics))
-        self.create_timer(float(self.p("idle_period")), guard("idle_timer", self.idle_step))
+                          guard("diagnostics_timer", self._diagnostics_timer))
+        self.create_timer(float(self.p("idle_period")), guard("idle_timer", self._idle_timer))
 
     # -- parameters at run time -----------------------------------------------------------------
 
@@ -352,6 +379,30 @@ class H2ONode(Node):
         self.idle_times.add(1e3 * (time.perf_counter() - start), budget_ms)
         self._graph_dirty = True
 
+    def _arrived(self, what: str, stamp_ns: int) -> None:
+        """Count the messages of ``what`` missing before this one, and whether it is late."""
+        now = time.monotonic_ns()
+        self.health[what].observe(stamp_ns, now)
+        if what == "odometry":
+            self._last_odom_handled_ns = now
+
+    def behind(self) -> bool:
+        """Odometry is waiting: the newest sample, handled within the last 0.2 s, was
+        handled later after its stamp than an idle step may delay it (``idle_budget_ms``, at
+        least twice ``budget_ms``). Work that can wait (idle steps, graph publication) then
+        yields to the inputs."""
+        odom = self.health["odometry"]
+        if time.monotonic_ns() - self._last_odom_handled_ns > 200_000_000:
+            return False
+        allowed = max(float(self.p("idle_budget_ms")), 2.0 * float(self.p("budget_ms")))
+        return odom.lag_ms > allowed
+
+    def _idle_timer(self) -> None:
+        if self.behind():
+            self.idle_yielded += 1
+            return
+        self.idle_step()
+
     def on_odom(self, msg: Any) -> None:
         """An odometry message: maybe a keyframe, its pose in ``map`` out, then one solver
         step with what is left of the budget (publishing first keeps the output's latency
@@ -360,6 +411,7 @@ class H2ONode(Node):
 
         def handle() -> None:
             sample = ma.odometry_from_msg(msg)
+            self._arrived("odometry", sample.stamp_ns)
             x, y, yaw, _ = sample.planar()
             self.mapper.add_odometry(sample.stamp_ns, np.array([x, y, yaw]))
             self._last_stamp_ns = max(self._last_stamp_ns, sample.stamp_ns)
@@ -391,6 +443,7 @@ class H2ONode(Node):
 
         def handle() -> None:
             stamp = ma.stamp_ns(msg.header, "NavSatFix.header.stamp")
+            self._arrived("gps", stamp)
             ma.check_stamp_order(self._last_gps_ns, stamp, field="NavSatFix.header.stamp",
                                  strict=True)
             if self._datum is None:
@@ -420,7 +473,7 @@ class H2ONode(Node):
 
     def publish_pose(self) -> None:
         """The newest odometry sample's pose in ``map``."""
-        latest = self.mapper.latest_pose()
+        latest = self.mapper.latest_pose(self._correction())
         if latest is None:
             return
         stamp, pose = latest
@@ -429,11 +482,33 @@ class H2ONode(Node):
         ma.fill_pose(msg.pose, geo.yaw_to_matrix(pose[2]), np.array([pose[0], pose[1], 0.0]))
         self.emit("pose", msg)
 
-    def publish_map_to_odom(self) -> None:
-        """``map → odom``, stamped with the newest input stamp."""
+    def _correction(self) -> np.ndarray:
+        """``map -> odom`` as of the last refresh (computed now if there is none)."""
+        if self._map_to_odom is None:
+            self._map_to_odom = self.mapper.map_to_odom()
+        return self._map_to_odom
+
+    def _shared(self, key: str, publish: Callable[[bool], None]) -> None:
+        """``publish(refresh)``, refreshing its costly part only when ``shares[key]`` allows."""
+        share = self.shares[key]
+        start = time.perf_counter()
+        refresh = share.due(start)
+        publish(refresh)
+        if refresh:
+            share.ran(start, time.perf_counter() - start)
+
+    def _map_to_odom_timer(self) -> None:
+        self._shared("map_to_odom", self.publish_map_to_odom)
+
+    def publish_map_to_odom(self, refresh: bool = True) -> None:
+        """``map → odom``, stamped with the newest input stamp. ``refresh``: compute the
+        correction anew (O(tree depth)), else publish the one ``~/pose`` uses now; the
+        transform timer refreshes it within ``output_time_share`` of the node's time."""
         if not self.mapper.num_nodes:
             return
-        x, y, yaw = self.mapper.map_to_odom()
+        if refresh or self._map_to_odom is None:
+            self._map_to_odom = self.mapper.map_to_odom()
+        x, y, yaw = self._map_to_odom
         msg = ma.fill_transform(TransformStamped, geo.yaw_to_matrix(yaw), np.array([x, y, 0.0]),
                                 stamp_ns=self._last_stamp_ns, frame_id=str(self.p("map_frame")),
                                 child_frame_id=str(self.p("odom_frame")))
@@ -441,19 +516,40 @@ class H2ONode(Node):
         if self._tf_cls is not None and self.p("publish_tf"):
             self.emit("tf", ma.fill_tf_message(self._tf_cls, [msg]))
 
-    def publish_graph(self) -> None:
-        """PoseArray, Path and MarkerArray of the graph (on a timer: they cost ms per
-        thousand poses, which must not come out of the solver's budget)."""
+    def _graph_timer(self) -> None:
+        share = self.shares["graph"]
+        start = time.perf_counter()
+        if not (self._graph_dirty and self.mapper.num_nodes and share.due(start)):
+            return
+        keys = {"poses", "path", "markers"}
+        if self.sink is None:  # live: only what someone listens to (it stays due)
+            keys = {k for k in keys if self.publishers_by_key[k].get_subscription_count()}
+        if not keys or self.behind():
+            return
+        self.publish_graph(keys)
+        share.ran(start, time.perf_counter() - start)
+
+    def publish_graph(self, keys: set[str] | None = None) -> None:
+        """PoseArray, Path and MarkerArray of the graph, or those of ``keys`` (on a timer:
+        they cost ms per thousand poses, which must not come out of the solver's budget;
+        live, the timer publishes at most ``output_time_share`` of the node's time, only
+        the topics with subscribers, and not while odometry waits)."""
         if not self._graph_dirty or not self.mapper.num_nodes:
             return
+        keys = {"poses", "path", "markers"} if keys is None else keys
         self._graph_dirty = False
         graph = self.mapper.graph()
         frame = str(self.p("map_frame"))
         stamp = self._last_stamp_ns
-        self.emit("poses", ma.fill_pose_array(PoseArray, graph.R, graph.t, stamp_ns=stamp,
-                                              frame_id=frame))
-        self.emit("path", ma.fill_path(PathMsg, graph.R, graph.t, stamp_ns=stamp,
-                                       frame_id=frame, stamps_ns=self.mapper.keyframes.stamps))
+        if "poses" in keys:
+            self.emit("poses", ma.fill_pose_array(PoseArray, graph.R, graph.t, stamp_ns=stamp,
+                                                  frame_id=frame))
+        if "path" in keys:
+            self.emit("path", ma.fill_path(PathMsg, graph.R, graph.t, stamp_ns=stamp,
+                                           frame_id=frame,
+                                           stamps_ns=self.mapper.keyframes.stamps))
+        if "markers" not in keys:
+            return
         chi2 = edge_chi2(graph)
         rel = graph.kind == EdgeKind.RELATIVE
         gps = graph.kind == EdgeKind.POSITION
@@ -464,25 +560,54 @@ class H2ONode(Node):
         self.emit("markers", ma.fill_graph_markers(MarkerArray, markers, stamp_ns=stamp,
                                                    frame_id=frame, residual_scale=3.0))
 
-    def diagnostics(self) -> ma.DiagnosticReport:
-        """The node's status: callback times against the budget, graph size, χ², counts."""
+    def _chi2_values(self, refresh: bool) -> dict[str, object]:
+        """χ² of every edge and the optimality ratio: O(edges) (the world poses composed
+        level by level, then every residual), so kept from the last refresh unless
+        ``refresh``; ``chi2_age_s`` says how old they are."""
+        now = time.perf_counter()
+        if refresh or self._chi2_cache is None:
+            graph = self.mapper.graph()
+            per_edge = edge_chi2(graph) if graph.num_edges else np.zeros(0)
+            ratio, outside = self.mapper.optimality(per_edge)
+            self._chi2_cache = {"chi2": float(np.sum(per_edge)), "optimality_ratio": ratio,
+                                "edges_outside_converged": outside}
+            self._chi2_at_s = now
+        return {**self._chi2_cache, "chi2_age_s": now - self._chi2_at_s}
+
+    def _load_values(self) -> dict[str, object]:
+        """Dropped and late inputs, input lag, deferred outputs and the process's RSS."""
+        values: dict[str, object] = {}
+        for what, health in self.health.items():
+            values[f"dropped {what}"] = health.dropped
+            values[f"late {what}"] = health.late
+            values[f"lag_max_ms {what}"] = health.max_lag_ms
+        values["idle_yielded"] = self.idle_yielded
+        values["graph_publications"] = self.shares["graph"].runs
+        values["graph_publish_ms"] = 1e3 * self.shares["graph"].last_cost_s
+        values["rss_mb"] = _rss_mb()
+        return values
+
+    def _diagnostics_timer(self) -> None:
+        self._shared("chi2", self.publish_diagnostics)
+
+    def diagnostics(self, refresh_chi2: bool = True) -> ma.DiagnosticReport:
+        """The node's status: callback times against the budget, graph size, χ², counts of
+        accepted, rejected, dropped and late inputs. ``refresh_chi2``: compute χ² anew (else
+        the last value, with its age)."""
         budget = float(self.p("budget_ms"))
         summary = self.times.summary()
-        graph = self.mapper.graph()
-        per_edge = edge_chi2(graph) if graph.num_edges else np.zeros(0)
-        ratio, outside = self.mapper.optimality(per_edge)
         exact = self.mapper.h2o.converger.state
         values: dict[str, object] = {
             "budget_ms": budget, **summary,
-            "nodes": self.mapper.num_nodes, "edges": graph.num_edges,
-            "chi2": float(np.sum(per_edge)),
-            "optimality_ratio": ratio,
-            "edges_outside_converged": outside,
+            "nodes": self.mapper.num_nodes, "edges": self.mapper.h2o.solver.num_edges,
+            **self._chi2_values(refresh_chi2),
             "exact_solves": exact.solves,
             "exact_failures": exact.failures,
             "deferred_edges": len(self.mapper.h2o.pending),
             "idle_steps": self.idle_times.count,
             "idle_max_ms": self.idle_times.max_ms,
+            "idle_overruns": self.idle_times.overruns,
+            **self._load_values(),
             "paused": self.paused,
             "tf_available": self._tf_cls is not None,
             "gps_datum": "unset" if self._datum is None else
@@ -499,10 +624,10 @@ class H2ONode(Node):
         return ma.DiagnosticReport(name=f"{self.get_name()}: solver", level=1 if late else 0,
                                    message=message, values=values, hardware_id="h2o_slam")
 
-    def publish_diagnostics(self) -> None:
-        """``/diagnostics``."""
+    def publish_diagnostics(self, refresh_chi2: bool = True) -> None:
+        """``/diagnostics`` (``refresh_chi2``: as :meth:`diagnostics`)."""
         self.emit("diagnostics", ma.fill_diagnostic_array(
-            DiagnosticArray, [self.diagnostics()], stamp_ns=self._last_stamp_ns))
+            DiagnosticArray, [self.diagnostics(refresh_chi2)], stamp_ns=self._last_stamp_ns))
 
     # -- services -----------------------------------------------------------------------------
 
@@ -523,6 +648,7 @@ class H2ONode(Node):
 
     def _srv_exact(self, request: Any, response: Any) -> Any:
         before, after = self.mapper.exact_solve()
+        self._map_to_odom = None
         self._graph_dirty = True
         response.success, response.message = True, f"chi2 {before:.6g} -> {after:.6g}"
         return response
@@ -535,6 +661,7 @@ class H2ONode(Node):
         self.rejected.clear()
         self.times = CallbackTimes()
         self.idle_times = CallbackTimes()
+        self._reset_load_state()
         self._graph_dirty = True
         response.success, response.message = True, "graph cleared"
         return response
@@ -544,6 +671,15 @@ class H2ONode(Node):
         response.success = True
         response.message = "paused" if self.paused else "running"
         return response
+
+
+def _rss_mb() -> float:
+    """Resident set size of this process (MiB; NaN where ``/proc`` is not there)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):
+        return math.nan
 
 
 def _ref(ref: ma.PoseRef) -> int | tuple[str, int]:

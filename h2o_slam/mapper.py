@@ -33,6 +33,7 @@ coordinates within :data:`MAX_COORDINATE_M`, measurement sigmas (loop closures, 
 
 from __future__ import annotations
 
+import bisect
 import math
 import os
 from collections import Counter
@@ -152,9 +153,15 @@ class OdometryTrack:
 
     def at(self, stamp_ns: int) -> Array:
         """Odometry pose at a stamp inside the span, linearly interpolated."""
-        stamps = self._stamps[: self.size].astype(float)
-        poses = self._poses[: self.size]
-        pose = np.array([np.interp(float(stamp_ns), stamps, poses[:, k]) for k in range(3)])
+        # The two neighbouring samples only: O(log n) on a track of hours at 100 Hz.
+        i = int(np.searchsorted(self._stamps[: self.size], stamp_ns, side="left"))
+        i = min(max(i, 1), self.size - 1) if self.size > 1 else 0
+        if self.size == 1 or self._stamps[i] == stamp_ns:
+            pose = self._poses[i].copy()
+        else:
+            s0, s1 = int(self._stamps[i - 1]), int(self._stamps[i])
+            w = (stamp_ns - s0) / (s1 - s0)
+            pose = (1.0 - w) * self._poses[i - 1] + w * self._poses[i]
         pose[2] = geo.wrap_angle(pose[2])
         return pose
 
@@ -219,8 +226,11 @@ class Keyframes:
 
     def nearest(self, stamp_ns: int) -> tuple[int, float]:
         """Index of the keyframe nearest in time, and the gap in seconds."""
-        stamps = np.asarray(self.stamps)
-        i = int(np.argmin(np.abs(stamps - stamp_ns)))
+        # Stamps increase (odometry stamps do): bisection, not a scan of every keyframe.
+        stamps = self.stamps
+        j = bisect.bisect_left(stamps, stamp_ns)
+        candidates = [k for k in (j - 1, j) if 0 <= k < len(stamps)]
+        i = min(candidates, key=lambda k: (abs(stamps[k] - stamp_ns), k))
         return i, abs(int(stamps[i]) - stamp_ns) * 1e-9
 
 
@@ -598,12 +608,17 @@ class Mapper:
         in_map = np.array([t[0], t[1], float(geo.matrix_to_yaw(R))])
         return compose(in_map, relative(self.keyframes.odom[node], np.zeros(3)))
 
-    def latest_pose(self) -> tuple[int, Array] | None:
-        """Stamp and ``map`` pose of the newest odometry sample (``None`` before any)."""
+    def latest_pose(self, map_to_odom: Array | None = None) -> tuple[int, Array] | None:
+        """Stamp and ``map`` pose of the newest odometry sample (``None`` before any).
+
+        ``map_to_odom``: the correction ``(x, y, yaw)`` to apply, when the caller keeps a
+        recent one (:meth:`map_to_odom` composes the newest keyframe's pose down its tree
+        ancestry: O(depth), milliseconds on a graph of 20,000 keyframes)."""
         if not self.track.size:
             return None
         stamp, odom = self.track.latest()
-        return stamp, compose(self.map_to_odom(), odom)
+        correction = self.map_to_odom() if map_to_odom is None else map_to_odom
+        return stamp, compose(correction, odom)
 
     # -- persistence --------------------------------------------------------------------------
 

@@ -93,3 +93,94 @@ class CostModel:
         """What predictions are multiplied by: the larger of ``safety`` and the observed
         :attr:`spread`."""
         return max(safety, self.spread)
+
+
+class InputHealth:
+    """Messages of one periodic input that never arrived, or arrived late, judged from
+    their stamps alone (the node cannot see a best-effort queue overflow or a lost packet).
+
+    * **Dropped**: the period is learned as the mean of the last ``history`` intervals
+      between consecutive stamps (a mean, since jitter cancels in it; a gap enters it as one
+      period); a gap of ``k`` periods (rounded) counts ``k - 1`` messages dropped.
+      Out-of-order or repeated stamps count nothing (the mapper refuses them).
+    * **Late**: a message's *lag* is the time it is handled (any monotonic clock, ns) minus
+      its stamp, less the smallest such difference seen so far: clocks need not agree (a
+      bag's stamps, simulated time), only tick at one rate. A message is late when its lag
+      exceeds ``late_ms``.
+    """
+
+    def __init__(self, late_ms: float, history: int = 32, min_intervals: int = 8) -> None:
+        if not late_ms > 0.0:
+            raise ValueError(f"late_ms must be > 0, got {late_ms!r}")
+        self.late_ms = late_ms
+        self._intervals = np.zeros(history, dtype=np.int64)
+        self._seen = 0  # intervals recorded
+        self._min_intervals = min_intervals
+        self._last_stamp_ns: int | None = None
+        self._offset_ns: int | None = None  # smallest (handled - stamp)
+        self.received = 0
+        self.dropped = 0
+        self.late = 0
+        self.lag_ms = 0.0  # of the newest message
+        self.max_lag_ms = 0.0
+
+    @property
+    def period_ns(self) -> int | None:
+        """The learned period (ns), once ``min_intervals`` intervals are known."""
+        if self._seen < self._min_intervals:
+            return None
+        n = min(self._seen, len(self._intervals))
+        return int(np.mean(self._intervals[:n]))
+
+    def observe(self, stamp_ns: int, handled_ns: int) -> None:
+        """One message with stamp ``stamp_ns``, handled at ``handled_ns``."""
+        self.received += 1
+        last, self._last_stamp_ns = self._last_stamp_ns, (
+            stamp_ns if self._last_stamp_ns is None else max(self._last_stamp_ns, stamp_ns))
+        if last is not None and stamp_ns > last:
+            gap = stamp_ns - last
+            period = self.period_ns
+            if period is not None and period > 0:
+                # Rounded: jitter of up to half a period is not a drop.
+                missing = int((gap + period // 2) // period) - 1
+                self.dropped += max(missing, 0)
+                if missing > 0:
+                    gap = period  # a gap is not a sample of the period
+            self._intervals[self._seen % len(self._intervals)] = gap
+            self._seen += 1
+        offset = handled_ns - stamp_ns
+        if self._offset_ns is None or offset < self._offset_ns:
+            self._offset_ns = offset
+        self.lag_ms = 1e-6 * (offset - self._offset_ns)
+        self.max_lag_ms = max(self.max_lag_ms, self.lag_ms)
+        if self.lag_ms > self.late_ms:
+            self.late += 1
+
+
+class CostShare:
+    """Rate limit for periodic work whose cost grows (graph publication, χ² over every
+    edge): the next run is due after the longer of ``period_s`` and ``cost / share``, so the
+    work takes at most ``share`` of the thread's time however large the graph grows.
+
+    Times are seconds of one monotonic clock, passed in.
+    """
+
+    def __init__(self, period_s: float, share: float) -> None:
+        if not (period_s >= 0.0 and 0.0 < share <= 1.0):
+            raise ValueError(f"period_s must be >= 0 and share in (0, 1], got {period_s!r}, "
+                             f"{share!r}")
+        self.period_s = period_s
+        self.share = share
+        self._next_s = -np.inf
+        self.runs = 0
+        self.last_cost_s = 0.0
+
+    def due(self, now_s: float) -> bool:
+        """Whether the work may run at ``now_s``."""
+        return now_s >= self._next_s
+
+    def ran(self, start_s: float, cost_s: float) -> None:
+        """The work ran from ``start_s`` for ``cost_s`` seconds."""
+        self.runs += 1
+        self.last_cost_s = cost_s
+        self._next_s = start_s + max(self.period_s, cost_s / self.share)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import gc
 import math
+import time
 import weakref
 from collections.abc import Iterator
 from pathlib import Path
@@ -374,3 +375,45 @@ def test_idle_steps_drain_edges_the_callbacks_could_not_fit(
     assert node.idle_times.count > 0
     # The deferred loop closures were relaxed: the graph's energy fell.
     assert float(np.sum(edge_chi2(node.mapper.graph()))) < 0.9 * before
+
+
+def test_dropped_and_late_odometry_are_counted_and_waiting_inputs_come_first(
+        harness: Harness) -> None:
+    node = harness.add(H2ONode, parameter_overrides=[Parameter("input_late_ms", value=100.0)])
+    t0 = 1_700_000_000 * 10**9
+    period = 10**7  # 100 Hz
+    ticks = [*range(40), *range(45, 60)]  # 40..44 never arrive
+    for k in ticks:  # handled faster than they were sent: never late
+        node.on_odom(_odometry(t0 + k * period, 0.01 * k))
+    assert not node.behind()
+    time.sleep(0.15)  # the next sample waited 150 ms, 140 ms more than its period
+    node.on_odom(_odometry(t0 + 60 * period, 0.6))
+    assert node.behind()
+    idle_steps = node.idle_times.count
+    node._idle_timer()
+    assert node.idle_yielded == 1 and node.idle_times.count == idle_steps
+    values = node.diagnostics().values
+    assert values["dropped odometry"] == 5 and values["late odometry"] == 1
+    assert values["lag_max_ms odometry"] == pytest.approx(140.0, abs=60.0)
+    assert values["idle_yielded"] == 1 and values["rss_mb"] > 10.0
+    assert values["chi2_age_s"] == 0.0
+    # χ² is kept between refreshes (its age reported), then computed anew.
+    node.on_odom(_odometry(t0 + 61 * period, 0.7))
+    stale = node.diagnostics(refresh_chi2=False).values
+    assert stale["chi2"] == values["chi2"] and stale["chi2_age_s"] > 0.0
+    assert node.diagnostics().values["chi2_age_s"] == 0.0
+
+
+def test_graph_timer_publishes_only_what_someone_listens_to(harness: Harness) -> None:
+    node = harness.add(H2ONode)
+    t0 = 1_700_000_000 * 10**9
+    for k in range(30):
+        node.on_odom(_odometry(t0 + k * 10**8, 0.2 * k))
+    node._graph_timer()  # no subscriber: nothing is built, the graph stays due
+    assert node.shares["graph"].runs == 0 and node._graph_dirty
+    poses = harness.subscribe(PoseArray, "h2o_node/graph/poses", LATCHED)
+    harness.spin_until(lambda: node.publishers_by_key["poses"].get_subscription_count() > 0,
+                       10.0, "graph subscriber")
+    node._graph_timer()
+    harness.spin_until(lambda: bool(poses), 10.0, "graph poses")
+    assert node.shares["graph"].runs == 1 and len(poses[-1].poses) == node.mapper.num_nodes

@@ -277,3 +277,45 @@ def test_exact_solve_reaches_the_least_squares_optimum() -> None:
     # A second solve from the optimum does not move.
     again = mapper.exact_solve()
     assert again[1] == pytest.approx(after, rel=1e-6, abs=1e-12)
+
+
+def test_lookups_by_stamp_agree_with_a_scan_of_every_sample() -> None:
+    """``Keyframes.nearest`` bisects and ``OdometryTrack.at`` interpolates between the two
+    neighbouring samples (O(log n) on a graph of 20,000 keyframes); both answer as a scan."""
+    rng = np.random.default_rng(4)
+    mapper = Mapper(MapperConfig(keyframe_distance_m=0.0, keyframe_angle_rad=0.0,
+                                 keyframe_period_s=0.35, budget_ms=None))
+    stamps = START + np.cumsum(rng.integers(NS // 50, NS // 5, size=120))
+    poses = np.cumsum(rng.normal(0.0, 0.1, size=(120, 3)), axis=0)
+    for s, pose in zip(stamps, poses, strict=True):
+        mapper.add_odometry(int(s), pose)
+    kf = np.asarray(mapper.keyframes.stamps)
+    track_s, track_p = mapper.track.stamps(), mapper.track.poses()
+    for query in [int(q) for q in rng.integers(stamps[0] - NS, stamps[-1] + NS, size=300)]:
+        node, gap = mapper.keyframes.nearest(query)
+        assert node == int(np.argmin(np.abs(kf - query)))
+        assert gap == pytest.approx(abs(int(kf[node]) - query) * 1e-9)
+        if mapper.track.covers(query):
+            # Stamps relative to the first: as floats, 1.7e18 ns keep only ~256 ns.
+            expected = np.array([np.interp(query - START, (track_s - START).astype(float),
+                                           track_p[:, k]) for k in range(3)])
+            got = mapper.track.at(query)
+            np.testing.assert_allclose(got[:2], expected[:2], atol=1e-9)
+            assert math.isclose(math.remainder(got[2] - expected[2], math.tau), 0.0,
+                                abs_tol=1e-9)
+    assert mapper.keyframes.nearest(int(kf[3]))[0] == 3
+
+
+def test_latest_pose_applies_the_correction_it_is_given() -> None:
+    truth = square_drive(laps=1)
+    mapper = Mapper(MapperConfig(budget_ms=None))
+    feed(mapper, drifting_odometry(truth)[:30])
+    exact = mapper.latest_pose()
+    assert exact is not None
+    same = mapper.latest_pose(mapper.map_to_odom())
+    assert same is not None and same[0] == exact[0]
+    np.testing.assert_allclose(same[1], exact[1])
+    shifted = mapper.latest_pose(compose(mapper.map_to_odom(), np.array([0.0, 0.0, 0.0]))
+                                 + np.array([1.0, -2.0, 0.0]))
+    assert shifted is not None
+    np.testing.assert_allclose(shifted[1][:2], exact[1][:2] + [1.0, -2.0], atol=1e-12)
