@@ -14,6 +14,9 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE_NAME]),
         ("share/" + PACKAGE_NAME, ["package.xml"]),
         ("share/" + PACKAGE_NAME + "/config", sorted(glob("config/*"))),
+        # ros2 launch h2o_slam h2o_slam.launch.xml (or .launch.py), and RViz's view of it.
+        ("share/" + PACKAGE_NAME + "/launch", sorted(glob("launch/*.launch.*"))),
+        ("share/" + PACKAGE_NAME + "/rviz", sorted(glob("rviz/*.rviz"))),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

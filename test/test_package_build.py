@@ -143,6 +143,11 @@ def test_install_space_layout(colcon_build: ColconBuild) -> None:
     assert (prefix / "share" / PACKAGE / "package.xml").is_file()
     for config in ("fastdds_localhost.xml", "h2o.yaml", "hybrid_vo.yaml"):
         assert (prefix / "share" / PACKAGE / "config" / config).is_file(), config
+    # What `ros2 launch h2o_slam <file>` and `rviz2 -d` look for under share/h2o_slam.
+    for installed in ("launch/h2o_slam.launch.xml", "launch/h2o_slam_replay.launch.xml",
+                      "launch/h2o_slam.launch.py", "rviz/h2o_slam.rviz"):
+        path = prefix / "share" / PACKAGE / installed
+        assert path.is_file() and path.read_bytes() == (REPO / installed).read_bytes(), path
     for name in EXECUTABLES + NODES:
         exe = prefix / "lib" / PACKAGE / name
         assert exe.is_file() and os.access(exe, os.X_OK), exe
