@@ -57,6 +57,7 @@ from h2o_slam.modes import solve_exact
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_RESULTS = REPO / "bench" / "RESULTS.md"
 SECTION = "## Nodes (bench/nodes.py)"
+GROWTH_SECTION = "## Node growth (bench/nodes.py --growth)"
 DEFAULT_BUDGETS_MS = (2.0, 5.0, 20.0)
 DEFAULT_LAPS = 5  # of the 36 s square: 3 minutes per budget at 1x
 ODOM_RATE_HZ = 50.0
@@ -74,6 +75,29 @@ DRAIN_TIMEOUT_S = 30.0
 INPUT_TOPICS = {"/wheel/odom": "odom", "/gps/fix": "gps/fix", "/loop_closure": "loop_closure"}
 KINDS = {"/wheel/odom": "odometry", "/gps/fix": "gps", "/loop_closure": "loop_closure"}
 NO_FIX_KEY = "rejected gps: NavSatFix.status: STATUS_NO_FIX"
+
+
+@dataclass(frozen=True)
+class Growth:
+    """A growth run: odometry at ``rate_hz``, every sample a keyframe, so that the graph
+    reaches the largest of ``milestones`` in minutes; the node's callback window is the
+    last ``window`` callbacks (10 s at 100 Hz) when each milestone is passed."""
+
+    milestones: tuple[int, ...] = (5000, 10000, 20000)
+    rate_hz: float = 100.0
+    window: int = 1000
+    idle_budget_ms: float = 10.0
+
+    @property
+    def node_params(self) -> dict[str, Any]:
+        """Parameters of the node under test: a keyframe per odometry sample."""
+        return {"keyframe_period": 0.5 / self.rate_hz,
+                "idle_budget_ms": self.idle_budget_ms}
+
+    @property
+    def laps(self) -> int:
+        """Laps of the 36 s square that reach the last milestone, with 10 s to spare."""
+        return int(np.ceil((max(self.milestones) / self.rate_hz + 10.0) / 36.0))
 
 
 # --- the node under test (child process) -----------------------------------------------------
@@ -107,7 +131,8 @@ def _cpu_timed_node() -> Any:
 
 
 def serve_node(namespace: str, budget_ms: float, window: int, profile: Path | None,
-               cpu_file: Path | None, graph_file: Path | None = None) -> int:
+               cpu_file: Path | None, graph_file: Path | None = None,
+               params: dict[str, Any] | None = None) -> int:
     """Run ``H2ONode`` in a ``SingleThreadedExecutor`` until SIGINT; then write the input
     callbacks' CPU times and the process's context switches to ``cpu_file`` (npz) and the
     node's graph at its final estimate to ``graph_file`` (g2o)."""
@@ -123,8 +148,10 @@ def serve_node(namespace: str, budget_ms: float, window: int, profile: Path | No
     rclpy.init()
     remaps = ["--ros-args", "-r", f"/diagnostics:={namespace}/diagnostics",
               "-r", f"/tf:={namespace}/tf"]
+    overrides = [Parameter("budget_ms", value=budget_ms)]
+    overrides += [Parameter(k, value=v) for k, v in (params or {}).items()]
     node = _cpu_timed_node()(namespace=namespace, cli_args=remaps,
-                             parameter_overrides=[Parameter("budget_ms", value=budget_ms)])
+                             parameter_overrides=overrides)
     node.get_logger().set_level(LoggingSeverity.ERROR)  # NO_FIX warnings are expected
     node.times = CallbackTimes(window=window)  # percentiles over the whole run
     executor = SingleThreadedExecutor()
@@ -166,7 +193,8 @@ def drive_config(laps: int, seed: int) -> Any:
     return demo_drive(seed, laps)
 
 
-def serve_publisher(namespace: str, laps: int, seed: int, speed: float, out: Path) -> int:
+def serve_publisher(namespace: str, laps: int, seed: int, speed: float, out: Path,
+                    rate_hz: float = ODOM_RATE_HZ) -> int:
     """Publish the drive at ``speed`` × the recorded pace once ``go`` arrives on stdin.
 
     Writes ``out`` (npz): odometry stamps (ns) and publish times (monotonic ns), the lateness
@@ -181,7 +209,7 @@ def serve_publisher(namespace: str, laps: int, seed: int, speed: float, out: Pat
     from hybrid_vo.world_messages import drive_messages
 
     drive = world.make_drive(drive_config(laps, seed))
-    stream = [m for m in drive_messages(drive, wheel_rate_hz=ODOM_RATE_HZ, with_images=False)
+    stream = [m for m in drive_messages(drive, wheel_rate_hz=rate_hz, with_images=False)
               if m.topic in INPUT_TOPICS]
     no_fix = sum(1 for fix in drive.gps if fix.status == STATUS_NO_FIX)
     rclpy.init()
@@ -263,6 +291,12 @@ class Run:
     map_chi2: float = float("nan")  # the node's final graph at its final estimate
     optimum_chi2: float = float("nan")  # the same graph's exact optimum
     map_error: str = ""
+    # Growth runs: the monitor's diagnostics snapshots, graphs it received, the odometry
+    # publisher's (stamps, send times) and the first ~/pose arrival per stamp.
+    snapshots: list[tuple[int, dict[str, Any], float, float]] = field(default_factory=list)
+    graphs_received: int = 0
+    odom_sent: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    first_pose: dict[int, int] = field(default_factory=dict)
 
     @property
     def map_ratio(self) -> float:
@@ -285,10 +319,29 @@ class Run:
         return int(self.published.get(kind, 0)) - sum(self.handled(kind))
 
 
-class Monitor:
-    """Subscribes to the node's ``~/pose`` and ``/diagnostics`` (remapped) in this process."""
+def rss_mb(pid: int) -> tuple[float, float]:
+    """Resident set size (MiB) of process ``pid`` and of its children together (the node
+    and its exact solver's worker), NaN where ``/proc`` cannot be read."""
+    page = os.sysconf("SC_PAGE_SIZE") / 2**20
 
-    def __init__(self, namespace: str) -> None:
+    def one(p: int) -> float:
+        with open(f"/proc/{p}/statm") as f:
+            return int(f.read().split()[1]) * page
+
+    try:
+        own = one(pid)
+        children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+        return own, own + sum(one(int(c)) for c in children)
+    except (OSError, ValueError, IndexError):
+        return float("nan"), float("nan")
+
+
+class Monitor:
+    """Subscribes to the node's ``~/pose`` and ``/diagnostics`` (remapped) in this process;
+    with ``watch_graph``, to ``~/graph/poses`` too (as RViz would, so that the node builds
+    its graph outputs)."""
+
+    def __init__(self, namespace: str, watch_graph: bool = False) -> None:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
@@ -306,10 +359,25 @@ class Monitor:
         self.poses: list[tuple[int, int]] = []  # (stamp ns, arrival monotonic ns)
         self.diag: dict[str, Any] = {}
         self.diag_count = 0
+        #: Every report: (arrival monotonic ns, values, node RSS MiB, node + worker RSS MiB).
+        self.snapshots: list[tuple[int, dict[str, Any], float, float]] = []
+        self.node_pid: int | None = None
+        self.graphs = 0
         self.pose_sub = self.node.create_subscription(
             PoseStamped, f"{namespace}/h2o_node/pose", self._on_pose, qos)
         self.diag_sub = self.node.create_subscription(
             DiagnosticArray, f"{namespace}/diagnostics", self._on_diag, qos)
+        if watch_graph:
+            from geometry_msgs.msg import PoseArray
+            from rclpy.qos import DurabilityPolicy
+
+            latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                                 durability=DurabilityPolicy.TRANSIENT_LOCAL)
+            self.graph_sub = self.node.create_subscription(
+                PoseArray, f"{namespace}/h2o_node/graph/poses", self._on_graph, latched)
+
+    def _on_graph(self, msg: Any) -> None:
+        self.graphs += 1
 
     def _on_pose(self, msg: Any) -> None:
         arrived = time.monotonic_ns()
@@ -320,6 +388,8 @@ class Monitor:
         values = parse_diagnostics(msg)
         if values is not None:
             self.diag, self.diag_count = values, self.diag_count + 1
+            rss = rss_mb(self.node_pid) if self.node_pid else (float("nan"), float("nan"))
+            self.snapshots.append((time.monotonic_ns(), values, *rss))
 
     def spin(self, seconds: float) -> None:
         """Handle arrivals for ``seconds``."""
@@ -357,15 +427,17 @@ def _stop(proc: subprocess.Popen[str], timeout_s: float = 20.0) -> None:
 
 
 def run_budget(budget_ms: float, laps: int, seed: int, speed: float, out_dir: Path,
-               profile: bool) -> Run:
-    """One run of the drive through a fresh node at ``budget_ms``."""
+               profile: bool, growth: Growth | None = None) -> Run:
+    """One run of the drive through a fresh node at ``budget_ms`` (with ``growth``: its
+    odometry rate, node parameters and callback window; the monitor watches the graph)."""
     run = Run(budget_ms)
     namespace = "/bench_nodes_" + uuid.uuid4().hex[:8]
-    stem = f"b{budget_ms:g}ms"
+    stem = f"b{budget_ms:g}ms" + ("_growth" if growth else "")
     times_file = out_dir / f"{stem}.publisher.npz"
     prof_file = out_dir / f"{stem}.profile.txt" if profile else None
-    window = int(laps * 36 * (ODOM_RATE_HZ + 2) * 1.2) + 1000
-    monitor = Monitor(namespace)
+    rate_hz = growth.rate_hz if growth else ODOM_RATE_HZ
+    window = growth.window if growth else int(laps * 36 * (ODOM_RATE_HZ + 2) * 1.2) + 1000
+    monitor = Monitor(namespace, watch_graph=growth is not None)
     cpu_file = out_dir / f"{stem}.node_cpu.npz"
     cpu_file.unlink(missing_ok=True)
     graph_file = out_dir / f"{stem}.map.g2o"
@@ -375,9 +447,13 @@ def run_budget(budget_ms: float, laps: int, seed: int, speed: float, out_dir: Pa
                  "--graph-file", str(graph_file)]
     if prof_file is not None:
         node_role += ["--profile-file", str(prof_file)]
+    if growth is not None:
+        node_role += ["--params", json.dumps(growth.node_params)]
     node = _child(node_role, out_dir / f"{stem}.node.log")
+    monitor.node_pid = node.pid
     pub = _child(["--role", "publish", "--namespace", namespace, "--laps", str(laps),
-                  "--seed", str(seed), "--speed", f"{speed:g}", "--times", str(times_file)],
+                  "--seed", str(seed), "--speed", f"{speed:g}", "--times", str(times_file),
+                  "--rate", f"{rate_hz:g}"],
                  out_dir / f"{stem}.publisher.log", stdin=subprocess.PIPE,
                  stdout=subprocess.PIPE)
     lines: queue.Queue[str] = queue.Queue()
@@ -426,6 +502,11 @@ def run_budget(budget_ms: float, laps: int, seed: int, speed: float, out_dir: Pa
         (out_dir / f"{stem}.diagnostics.json").write_text(json.dumps(run.diag, indent=1))
         run.latency_ms, run.poses_missing = _latency(data, monitor.poses)
         run.publisher_late_ms = data["late_ns"] * 1e-6
+        if growth is not None:
+            run.snapshots = list(monitor.snapshots)
+            run.graphs_received = monitor.graphs
+            run.odom_sent = (data["odom_stamp_ns"], data["odom_sent_ns"])
+            run.first_pose = _first_pose(monitor.poses)
     finally:
         _stop(pub)
         _stop(node)
@@ -461,6 +542,13 @@ def _drain(lines: queue.Queue[str]) -> str | None:
 def _failed(run: Run, why: str, out_dir: Path, stem: str) -> Run:
     run.status = f"failed: {why} (logs: {out_dir}/{stem}.*.log)"
     return run
+
+
+def _first_pose(poses: list[tuple[int, int]]) -> dict[int, int]:
+    first: dict[int, int] = {}
+    for stamp, arrived in poses:
+        first.setdefault(stamp, arrived)
+    return first
 
 
 def _latency(data: Any, poses: list[tuple[int, int]]) -> tuple[np.ndarray, int]:
@@ -627,6 +715,153 @@ def render_section(runs: list[Run], laps: int, speed: float, seed: int) -> str:
             f"{format_details(runs)}\n\n{NOTES}")
 
 
+# --- growth report ------------------------------------------------------------------------------
+
+
+def growth_rows(run: Run, growth: Growth) -> list[dict[str, Any]]:
+    """One row per milestone (the first diagnostics report at or past it) and one for the
+    end of the run: the node's numbers, odometry latency over the 10 s before the report,
+    and the RSS of the node (and its worker) when the report arrived."""
+    rows: list[dict[str, Any]] = []
+    stamps, sent = run.odom_sent
+    for label, target in [*((f"{m}", m) for m in growth.milestones), ("end", None)]:
+        if target is None:
+            snap = run.snapshots[-1] if run.snapshots else None
+        else:
+            snap = next((x for x in run.snapshots if x[1].get("nodes", 0) >= target), None)
+        if snap is None:
+            rows.append({"label": label, "reached": False})
+            continue
+        at_ns, diag, rss, rss_all = snap
+        recent = (sent <= at_ns) & (sent > at_ns - 10_000_000_000)
+        lat = np.array([(run.first_pose[s] - t) * 1e-6
+                        for s, t in zip(stamps[recent].tolist(), sent[recent].tolist(),
+                                        strict=True) if s in run.first_pose])
+        rows.append({"label": label, "reached": True, "diag": diag, "rss": rss,
+                     "rss_all": rss_all, "latency": lat})
+    return rows
+
+
+def format_growth(run: Run, growth: Growth) -> str:
+    """The Markdown table of a growth run."""
+    head = ["milestone", "keyframes / edges", "callbacks", "p50 / p99 / max ms (last "
+            f"{growth.window})", "p99 ≤ budget", "overruns (all)", "idle max ms / overruns / "
+            "yielded", "dropped odom (node)", "late odom (node)", "lag max ms",
+            "latency p50 / p99 / max ms (last 10 s)", "graphs published / last ms",
+            "χ² age s", "RSS node / + worker MB"]
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    for row in growth_rows(run, growth):
+        if not row["reached"]:
+            lines.append(f"| {row['label']} | not reached |" + " |" * (len(head) - 2))
+            continue
+        d = row["diag"]
+        p99 = float(d.get("p99_ms", float("nan")))
+        cells = [
+            row["label"], f"{int(d.get('nodes', 0))} / {int(d.get('edges', 0))}",
+            f"{int(d.get('callbacks', 0))}",
+            " / ".join(_f(d.get(k)) for k in ("p50_ms", "p99_ms", "window_max_ms")),
+            "yes" if p99 <= run.budget_ms else "**no**", f"{int(d.get('overruns', 0))}",
+            f"{_f(d.get('idle_max_ms'))} / {int(d.get('idle_overruns', 0))} / "
+            f"{int(d.get('idle_yielded', 0))}",
+            f"{int(d.get('dropped odometry', 0))}", f"{int(d.get('late odometry', 0))}",
+            _f(d.get("lag_max_ms odometry"), 1),
+            " / ".join(_f(_pct(row["latency"], q)) for q in (50, 99, 100)),
+            f"{int(d.get('graph_publications', 0))} / {_f(d.get('graph_publish_ms'), 0)}",
+            _f(d.get("chi2_age_s"), 1), f"{row['rss']:.0f} / {row['rss_all']:.0f}",
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def growth_verdict(run: Run, growth: Growth) -> str:
+    """Issue 13, item 5, judged on the run."""
+    rows = [r for r in growth_rows(run, growth) if r["label"] != "end"]
+    parts = []
+    for r in rows:
+        if not r["reached"]:
+            parts.append(f"{r['label']} keyframes not reached")
+            continue
+        p99 = float(r["diag"].get("p99_ms", float("nan")))
+        parts.append(f"p99 at {r['label']}: {p99:.2f} ms "
+                     f"({'met' if p99 <= run.budget_ms else 'NOT met'})")
+    d = run.diag
+    truth = run.dropped("odometry")
+    counted = int(d.get("dropped odometry", 0))
+    parts.append(f"odometry dropped (published − handled) {truth}, counted by the node "
+                 f"{counted} ({'all counted' if counted >= truth else 'NOT all counted'})")
+    idle = float(d.get("idle_max_ms", float("nan")))
+    parts.append(f"idle steps max {idle:.1f} ms against {growth.idle_budget_ms:g} ms "
+                 f"({'met' if idle <= growth.idle_budget_ms else 'NOT met'}; "
+                 f"{int(d.get('idle_overruns', 0))} of {int(d.get('idle_steps', 0))} over)")
+    return "Targets (issue 13, item 5): " + "; ".join(parts) + "."
+
+
+GROWTH_NOTES = """\
+Notes:
+
+- Same three processes as `## Nodes`: the node under test alone in its process, the
+  publisher, this script as monitor. The feed is the demo drive with wheel odometry at
+  `--growth-rate` Hz (default 100) and the node's `keyframe_period` at half the odometry
+  period, so every sample is a keyframe: the graph grows by 100 keyframes a second and
+  passes 20,000 after 200 s (at the default `keyframe_distance` of 0.5 m it would take
+  hours). The monitor also subscribes to `~/graph/poses`, as RViz would, so the node
+  publishes its graph (the node builds only the graph topics somebody subscribes to).
+- Each milestone row is the first `/diagnostics` report at or past that many keyframes:
+  callback percentiles over the node's window (the last 1000 input callbacks, 10 s at
+  100 Hz); overruns, idle-step maxima and the node's `dropped` / `late` counters since the
+  start; latency (odometry `publish` → `~/pose` in the monitor) of the odometry sent in the
+  10 s before the report; RSS of the node's process, and with its exact-solver worker,
+  read from `/proc` when the report arrived.
+- `dropped odom (node)` is the node's own count from gaps in the odometry stamps
+  (`h2o_slam.timing.InputHealth`), checked against the publisher's count at the end of the
+  run (published − accepted − rejected). `late` is a sample handled more than
+  `input_late_ms` (100) after its stamp, less the smallest such delay seen.
+"""
+
+
+def render_growth(run: Run, growth: Growth, speed: float, seed: int) -> str:
+    """The growth section of RESULTS.md."""
+    when = dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
+    if run.status != "ok":
+        body = f"Run failed: {run.status}"
+    else:
+        published = run.published
+        handled = run.handled("odometry")
+        body = (f"{format_growth(run, growth)}\n\n{growth_verdict(run, growth)}\n\n"
+                f"Published odometry {published.get('odometry', 0)}, accepted {handled[0]}, "
+                f"rejected {handled[2]}; GPS {published.get('gps', 0)}, loop closures "
+                f"{published.get('loop_closure', 0)}; graphs received by the monitor "
+                f"{run.graphs_received}; run {run.wall_s:.0f} s; load (1 min) "
+                f"{run.load[0]:.2f} → {run.load[1]:.2f}. Final map χ² / optimum: "
+                + (run.map_error or f"{run.map_ratio:.4f}") + ".")
+    caption = (f"h2o_node at budget_ms {run.budget_ms:g} fed {growth.laps} laps of the demo "
+               f"drive (seed {seed}) with odometry at {growth.rate_hz:g} Hz, every sample a "
+               f"keyframe, at {speed:g}× real time, idle_budget_ms "
+               f"{growth.idle_budget_ms:g}, on 2 cores.")
+    return (f"{GROWTH_SECTION}\n\nCommand (from the repo root): `{command(REPO)}`\n\n"
+            f"Date: {when}. Machine: {_machine()}; shared with other work, timings "
+            f"indicative.\n\n{caption}\n\n{body}\n\n{GROWTH_NOTES}")
+
+
+def run_growth(budget_ms: float, growth: Growth, seed: int, speed: float,
+               out_dir: Path | None, results: Path | None, profile: bool) -> int:
+    """The growth run; print and write its section; return the exit code."""
+    with tempfile.TemporaryDirectory(prefix="h2o-bench-growth-") as tmp:
+        target = out_dir if out_dir is not None else Path(tmp)
+        target.mkdir(parents=True, exist_ok=True)
+        print(f"nodes.py: growth to {max(growth.milestones)} keyframes at {budget_ms:g} ms, "
+              f"{growth.laps} laps at {growth.rate_hz:g} Hz (load {os.getloadavg()[0]:.2f}) "
+              "...", file=sys.stderr, flush=True)
+        r = run_budget(budget_ms, growth.laps, seed, speed, target, profile, growth)
+        print(f"nodes.py: growth: {r.status}", file=sys.stderr, flush=True)
+        section = render_growth(r, growth, speed, seed)
+    print(section)
+    if results is not None:
+        replace_section(results, GROWTH_SECTION, section)
+        print(f"written to {results}", file=sys.stderr)
+    return 0 if r.status == "ok" else 1
+
+
 # --- entry point --------------------------------------------------------------------------------
 
 
@@ -672,6 +907,16 @@ def main(argv: list[str] | None = None) -> int:
                         "text profiles go to --output-dir")
     parser.add_argument("--quick", action="store_true",
                         help="smoke run: 1 lap, the 5 ms budget only; prints, writes nothing")
+    parser.add_argument("--growth", action="store_true",
+                        help="growth run instead: one node at the first of --budgets (default "
+                        "5 ms) until the graph passes every --milestones keyframes")
+    parser.add_argument("--milestones", nargs="+", type=int, metavar="N",
+                        default=list(Growth.milestones),
+                        help="keyframe counts a growth run reports at (default 5000 10000 "
+                        "20000)")
+    parser.add_argument("--growth-rate", type=float, default=Growth.rate_hz, metavar="HZ",
+                        help="odometry rate of a growth run; every sample is a keyframe "
+                        "(default 100)")
     # Child roles (this file runs itself as the node and the publisher).
     parser.add_argument("--role", choices=("node", "publish"), help=argparse.SUPPRESS)
     parser.add_argument("--namespace", help=argparse.SUPPRESS)
@@ -680,12 +925,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--profile-file", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--times", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--graph-file", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--params", type=json.loads, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--rate", type=float, default=ODOM_RATE_HZ, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.role == "node":
         return serve_node(args.namespace, args.budget, args.window, args.profile_file,
-                          args.times, args.graph_file)
+                          args.times, args.graph_file, args.params)
     if args.role == "publish":
-        return serve_publisher(args.namespace, args.laps, args.seed, args.speed, args.times)
+        return serve_publisher(args.namespace, args.laps, args.seed, args.speed, args.times,
+                               args.rate)
     if args.laps < 1 or args.speed <= 0 or any(b <= 0 for b in args.budgets):
         parser.error("--laps must be >= 1, --speed and --budgets > 0")
     if args.quick:
@@ -694,6 +942,13 @@ def main(argv: list[str] | None = None) -> int:
         print("nodes.py: FASTRTPS_DEFAULT_PROFILES_FILE is not set; DDS may leave loopback "
               "(export it as the README says)", file=sys.stderr)
     results = None if args.no_results else args.results
+    if args.growth:
+        if any(m < 1 for m in args.milestones) or not args.growth_rate > 0:
+            parser.error("--milestones must be >= 1 and --growth-rate > 0")
+        budget = TARGET_BUDGET_MS if args.budgets == list(DEFAULT_BUDGETS_MS) else args.budgets[0]
+        growth = Growth(tuple(sorted(args.milestones)), args.growth_rate)
+        return run_growth(budget, growth, args.seed, args.speed, args.output_dir, results,
+                          args.profile)
     return run(args.budgets, args.laps, args.seed, args.speed, args.output_dir, results,
                args.profile)
 
