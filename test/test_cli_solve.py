@@ -200,3 +200,22 @@ def test_progress_line_after_a_second_and_quiet(planar_file, tmp_path, capsys):
     # A solve shorter than the period prints nothing.
     code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o")], capsys)
     assert code == 0 and err == []
+
+
+def test_a_solve_longer_than_a_second_prints_progress(planar_file, tmp_path, capsys,
+                                                      monkeypatch):
+    import h2o_slam.cli.solve as solve_cli
+
+    real = solve_cli.solve_file
+
+    def slow(input_path, output_path, options, metric, progress):
+        progress(1, 123.0)
+        time.sleep(1.3)
+        return real(input_path, output_path, options, metric, progress)
+
+    monkeypatch.setattr(solve_cli, "solve_file", slow)
+    argv = [str(planar_file), "-o", str(tmp_path / "o.g2o"), "--mode", "offline"]
+    code, err, _ = run(argv, capsys)
+    assert code == 0 and err and err[0].startswith("h2o-solve: offline: pass 1, chi2 123 ("), err
+    code, err, _ = run([*argv, "--quiet"], capsys)
+    assert code == 0 and err == []
