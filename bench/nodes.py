@@ -515,7 +515,8 @@ def run_budget(budget_ms: float, laps: int, seed: int, speed: float, out_dir: Pa
     if cpu_file.exists():
         cpu = np.load(cpu_file)
         run.cpu_ms, run.involuntary_switches = cpu["cpu_ms"], int(cpu["involuntary_switches"])
-    _score_map(run, graph_file)
+    if growth is None:  # an exact solve of 20,000 keyframes would hold the machine for long
+        _score_map(run, graph_file)
     return run
 
 
@@ -832,8 +833,8 @@ def render_growth(run: Run, growth: Growth, speed: float, seed: int) -> str:
                 f"rejected {handled[2]}; GPS {published.get('gps', 0)}, loop closures "
                 f"{published.get('loop_closure', 0)}; graphs received by the monitor "
                 f"{run.graphs_received}; run {run.wall_s:.0f} s; load (1 min) "
-                f"{run.load[0]:.2f} → {run.load[1]:.2f}. Final map χ² / optimum: "
-                + (run.map_error or f"{run.map_ratio:.4f}") + ".")
+                f"{run.load[0]:.2f} → {run.load[1]:.2f}. The final map is not scored "
+                "against the optimum here (`## Nodes` does that on the 5-lap drive).")
     caption = (f"h2o_node at budget_ms {run.budget_ms:g} fed {growth.laps} laps of the demo "
                f"drive (seed {seed}) with odometry at {growth.rate_hz:g} Hz, every sample a "
                f"keyframe, at {speed:g}× real time, idle_budget_ms "
