@@ -240,6 +240,7 @@ class H2ONode(Node):
         self._last_odom_handled_ns = 0
         #: ``map -> odom`` as of the last refresh (by the transform timer, or on demand).
         self._map_to_odom: np.ndarray | None = None
+        self._map_revision = -1
         self._chi2_cache: dict[str, object] | None = None
         self._chi2_at_s = 0.0
         self.shares = {
@@ -483,9 +484,13 @@ class H2ONode(Node):
         self.emit("pose", msg)
 
     def _correction(self) -> np.ndarray:
-        """``map -> odom`` as of the last refresh (computed now if there is none)."""
-        if self._map_to_odom is None:
+        """``map -> odom`` as of the last refresh, computed anew when there is none or the map
+        has moved as a whole since (a merged exact solution would otherwise reach ``~/pose``
+        only at the next transform refresh)."""
+        revision = self.mapper.map_revision()
+        if self._map_to_odom is None or revision != self._map_revision:
             self._map_to_odom = self.mapper.map_to_odom()
+            self._map_revision = revision
         return self._map_to_odom
 
     def _shared(self, key: str, publish: Callable[[bool], None]) -> None:
@@ -508,6 +513,7 @@ class H2ONode(Node):
             return
         if refresh or self._map_to_odom is None:
             self._map_to_odom = self.mapper.map_to_odom()
+            self._map_revision = self.mapper.map_revision()
         x, y, yaw = self._map_to_odom
         msg = ma.fill_transform(TransformStamped, geo.yaw_to_matrix(yaw), np.array([x, y, 0.0]),
                                 stamp_ns=self._last_stamp_ns, frame_id=str(self.p("map_frame")),
@@ -648,7 +654,6 @@ class H2ONode(Node):
 
     def _srv_exact(self, request: Any, response: Any) -> Any:
         before, after = self.mapper.exact_solve()
-        self._map_to_odom = None
         self._graph_dirty = True
         response.success, response.message = True, f"chi2 {before:.6g} -> {after:.6g}"
         return response

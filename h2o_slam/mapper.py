@@ -608,6 +608,11 @@ class Mapper:
         in_map = np.array([t[0], t[1], float(geo.matrix_to_yaw(R))])
         return compose(in_map, relative(self.keyframes.odom[node], np.zeros(3)))
 
+    def map_revision(self) -> int:
+        """Bumped when the map moves as a whole (an exact solution merged, a subtree joined or
+        aligned to GPS): a kept :meth:`map_to_odom` older than that is wrong by the move."""
+        return self.h2o.converger.state.merges + self.h2o.converger.generation
+
     def latest_pose(self, map_to_odom: Array | None = None) -> tuple[int, Array] | None:
         """Stamp and ``map`` pose of the newest odometry sample (``None`` before any).
 

@@ -680,6 +680,12 @@ class OnlineH2O:
 
     def _relax_gps(self, edge: int, deadline: float, report: StepReport) -> bool:
         solver = self.solver
+        # Building the batch walks the whole path to the earth (O(depth)), so a refused attempt
+        # must be refused before it: the edge's own path is a lower bound on the batch's domain.
+        fewest = int(solver.tree.depth[solver.b[edge]])
+        if self.batch_cost.predict(fewest, 1) * self.batch_cost.margin(
+                self.online.safety) > deadline - self._clock():
+            return False
         batch = solver.upstream_gps(int(solver.b[edge]), solver.config.gps_batch_size)
         if edge not in batch:
             batch.append(edge)

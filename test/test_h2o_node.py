@@ -144,6 +144,32 @@ def test_loop_closures_pull_the_graph_together(harness: Harness,
         5.0, "graph poses of every keyframe")
 
 
+def test_pose_after_a_merge_carries_its_correction(
+        harness: Harness, loop_drive: world.Drive) -> None:
+    # The transform timer refreshes map->odom every 10 s only: what keeps ~/pose right
+    # after the map moves as a whole is the refresh on the map's revision.
+    node, out = start(harness, budget_ms=20.0, transform_publish_period=10.0)
+    messages = stream(loop_drive, gps=False, loops=True)
+    closures = [m for m in messages if m.topic == "/loop_closure"]
+    play(harness, [m for m in messages if m.topic != "/loop_closure"], node)
+    before = node._correction().copy()
+    merges = node.mapper.h2o.converger.state.merges
+    play(harness, closures, node)
+    # The exact solver's answer is merged in the node's own steps, as on a robot.
+    harness.spin_until(lambda: node.mapper.h2o.converger.state.merges > merges, 10.0,
+                       "an exact solution merged")
+    count = len(out["pose"])
+    latest = node.mapper.latest_pose()  # fresh, with nothing spinning in between
+    node.publish_pose()
+    harness.spin_until(lambda: len(out["pose"]) > count, 5.0, "a pose after the merge")
+    assert latest is not None
+    p = out["pose"][-1].pose.position
+    assert (p.x, p.y) == pytest.approx((latest[1][0], latest[1][1]), abs=1e-9)
+    # The closures moved the map by a wheel drift's worth: a stale correction would show.
+    moved = node.mapper.map_to_odom() - before
+    assert float(np.hypot(moved[0], moved[1])) > 0.2 * wheel_error(loop_drive)
+
+
 def test_gps_anchors_the_graph_in_enu(harness: Harness, slip_drive: world.Drive) -> None:
     node, out = start(harness, datum=DATUM, budget_ms=20.0)
     play(harness, stream(slip_drive, gps=True, loops=False), node)

@@ -227,6 +227,26 @@ def test_gps_edges_wait_for_three_then_the_subtree_is_fitted():
     assert np.abs(t[:, 1]).max() < 0.5
 
 
+def test_gps_edge_that_cannot_fit_is_refused_before_its_batch_is_built(monkeypatch):
+    # Building the batch walks to the earth: O(depth) on every refused attempt otherwise
+    # (15 ms a try at 20k keyframes, measured by bench/nodes.py --growth).
+    graph = _dog_leg_graph(every=10)
+    h2o = OnlineH2O(True, online=OnlineConfig(balance=False))
+    for node, edges in enumerate(arrivals(graph)):
+        add_arrival(h2o, graph, node, edges)
+        h2o.step(None)
+    gps = int(np.flatnonzero(h2o.solver.kind[: h2o.solver.num_edges] == EdgeKind.POSITION)[-1])
+    walks = []
+    original = h2o.solver.upstream_gps
+    monkeypatch.setattr(h2o.solver, "upstream_gps",
+                        lambda *args: walks.append(args) or original(*args))
+    report = h2o.step(None)
+    assert h2o._relax_gps(gps, h2o._clock() + 1e-9, report) is False
+    assert walks == []
+    assert h2o._relax_gps(gps, h2o._clock() + 10.0, report) is True
+    assert len(walks) == 1
+
+
 @pytest.mark.parametrize("planar", [True, False])
 def test_best_fit_transform_recovers_a_rigid_motion(planar):
     rng = np.random.default_rng(1)
