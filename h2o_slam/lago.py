@@ -47,6 +47,13 @@ component with GPS but no orientation edge has an unknown global rotation that t
 phases cannot estimate. :func:`lago` refuses them unless ``ignore_global=True``, which
 solves the relative edges alone.
 
+``covariance="structured"`` runs the original linear approximation for structured covariance
+(Carlone, Aragues, Castellanos and Bona 2011/2012, the paper's reference [3] and the
+"structured covariance" column of its Table 1): the position–orientation cross terms
+``Ω_Δδ`` are dropped (as [3] reads the ``Ω_Δ`` and ``Ω_δ`` blocks only), so phase 1 weighs
+each edge by ``Ω_δ`` instead of the marginal ``P_δ⁻¹`` and ``Δ̂ˡ = Δ̄ˡ``. On graphs without
+such correlations the two variants are the same computation.
+
 Only sparse matrices and sparse direct factorizations are used (:func:`solve_spd`): CHOLMOD
 from cvxopt's wheel by default, QDLDL or scipy's SuperLU when it is not installed.
 """
@@ -73,6 +80,10 @@ LOG = logging.getLogger(__name__)
 #: Where :math:`J` of (12) is evaluated: at the phase-1 estimate ``Δ̂ˡ`` (the paper's (12))
 #: or at the measurement ``Δ̄ˡ`` (Theorem 1's Gauss–Newton step). See the module docstring.
 JACOBIANS = ("estimate", "measurement")
+
+#: Which covariance LAGO uses: all of each 3×3 block ("full", the paper's Algorithm 1) or
+#: its position and orientation blocks only ("structured", the 2012 approximation [3]).
+COVARIANCES = ("full", "structured")
 
 #: Sparse direct factorizations :func:`solve_spd` offers ("auto": the fastest installed).
 FACTORIZATIONS = ("auto", "cholmod", "qdldl", "splu-mmd", "splu-colamd", "spsolve")
@@ -135,6 +146,7 @@ def lago(
     jacobian: str = "estimate",
     ignore_global: bool = False,
     factorization: str = "auto",
+    covariance: str = "full",
 ) -> LagoResult:
     """The LAGO approximation (paper Algorithm 1) of a planar pose graph.
 
@@ -148,17 +160,23 @@ def lago(
         ignore_global: solve the relative edges alone when the graph also has GPS or compass
             edges, instead of refusing it.
         factorization: one of :data:`FACTORIZATIONS` (see :func:`solve_spd`).
+        covariance: one of :data:`COVARIANCES`; ``"structured"`` drops the position–yaw
+            cross terms of every information matrix (the 2012 approximation, module
+            docstring).
 
     Raises:
         InputError: the graph is 3-D, or has global edges and ``ignore_global`` is false, or
             a linear system is singular beyond what the eigen-clamped information allows.
-        ValueError: ``jacobian`` or ``factorization`` is unknown.
+        ValueError: ``jacobian``, ``factorization`` or ``covariance`` is unknown.
     """
     if jacobian not in JACOBIANS:
         raise ValueError(f"unknown jacobian {jacobian!r}; choose one of {', '.join(JACOBIANS)}")
     if factorization not in FACTORIZATIONS:
         raise ValueError(f"unknown factorization {factorization!r}; choose one of "
                          f"{', '.join(FACTORIZATIONS)}")
+    if covariance not in COVARIANCES:
+        raise ValueError(f"unknown covariance {covariance!r}; choose one of "
+                         f"{', '.join(COVARIANCES)}")
     if not graph.planar:
         raise InputError("LAGO handles planar graphs only; this graph is 3-D")
     rel = graph.kind == EdgeKind.RELATIVE
@@ -172,6 +190,8 @@ def lago(
     delta_l = graph.meas_t[edges, :2]
     yaw_meas = geo.matrix_to_yaw(graph.meas_R[edges])
     omega = paper_information(graph.info[edges], graph.meas_R[edges])
+    if covariance == "structured":
+        omega[:, :2, 2] = omega[:, 2, :2] = 0.0
     om_dd, om_dt, om_tt = _split_information(omega)
     # Ω_Δ⁻¹ Ω_Δδ per edge, and the marginal orientation information P_δ⁻¹ (Schur complement).
     gain = _solve2(om_dd, om_dt)

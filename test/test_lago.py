@@ -391,6 +391,30 @@ def test_correlations_change_the_answer():
     assert np.abs(res.t[:, :2] - p).max() > 1e-4
 
 
+@pytest.mark.parametrize("factorization", PATHS)
+@pytest.mark.parametrize("seed", range(4))
+def test_structured_variant_is_the_2012_approximation(seed, factorization):
+    """``covariance="structured"`` on a correlated graph is the covariance-form reference of
+    the original LAGO (which reads the Ω_Δ and Ω_δ blocks only), and the same as the full
+    algorithm on the graph with its cross terms removed."""
+    graph = correlated(seed)
+    res = lago(graph, covariance="structured", factorization=factorization)
+    np.testing.assert_allclose(res.delta_hat, graph.meas_t[:, :2], rtol=0, atol=1e-12)
+    p, th = structured_lago_dense(graph, res.delta_rad)
+    assert_poses(res, p, th, 1e-9)
+    plain = lago(block_diagonal(graph), factorization=factorization)
+    np.testing.assert_allclose(res.t, plain.t, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(res.yaw_rad, plain.yaw_rad, rtol=0, atol=1e-10)
+
+
+def test_structured_variant_changes_nothing_without_correlations():
+    """Variants I and P_s of the paper's Table 1: both columns attain the same objective."""
+    graph = block_diagonal(correlated(2))
+    full, structured = lago(graph), lago(graph, covariance="structured")
+    np.testing.assert_allclose(full.t, structured.t, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(full.yaw_rad, structured.yaw_rad, rtol=0, atol=1e-12)
+
+
 # --- Theorem 1: one Gauss–Newton step from (p̂, θ̂) ---------------------------------------------
 
 
@@ -674,6 +698,8 @@ def test_unknown_options_are_refused(city):
         lago(city.graph, jacobian="middle")
     with pytest.raises(ValueError, match="unknown factorization 'qr'"):
         lago(city.graph, factorization="qr")
+    with pytest.raises(ValueError, match="unknown covariance 'diagonal'; choose one of full"):
+        lago(city.graph, covariance="diagonal")
     with pytest.raises(ValueError, match="unknown factorization 'dense'"):
         solve_spd(sparse.eye(3, format="csc"), np.ones(3), "dense")
 
