@@ -27,7 +27,8 @@ F = TypeVar("F", bound=Callable[..., Any])
 #: Modules whose kernels call one another. numba's cache checks only the source file of the
 #: function it compiled, so a kernel inlined from another module would go stale when that
 #: module changes: the cache folder is keyed by the sources of all of them.
-_KERNEL_MODULES = ("compiled", "geometry", "jacobians", "hybrid", "interpolate", "solver")
+_KERNEL_MODULES = ("compiled", "geometry", "jacobians", "hybrid", "interpolate", "solver",
+                   "tree")
 
 
 def _cache_dir() -> str:
@@ -90,3 +91,5 @@ def warm_up() -> None:
         solver.relax(loop, d_max=2)
         solver.relax(loop, d_max=2, guard=True)
         solver.relax_batch([gps])
+        solver.world_poses()
+        solver.tree.tops()

@@ -44,8 +44,8 @@ import numpy as np
 
 from h2o_slam import geometry as geo
 from h2o_slam.geometry import Array
-from h2o_slam.graph import EARTH, PoseGraph, chi2
-from h2o_slam.solver import H2OSolver, SolverConfig
+from h2o_slam.graph import EARTH
+from h2o_slam.solver import H2OSolver, SolverConfig, WorldLinearization
 from h2o_slam.timing import CostModel
 from h2o_slam.tree import PoseTree
 
@@ -100,37 +100,26 @@ class Solution:
     error: str = ""
 
 
-def edge_graph(solver: H2OSolver, R: Array, t: Array, edges: int | None = None) -> PoseGraph:
-    """The solver's first ``edges`` edges (all by default) as a graph holding ``(R, t)``."""
-    m = solver.num_edges if edges is None else edges
-    return PoseGraph(solver.planar, np.arange(len(R)), R, t, solver.kind[:m], solver.a[:m],
-                     solver.b[:m], solver.meas_R[:m], solver.meas_t[:m], solver.info[:m])
+def damped_step(solver: H2OSolver, lin: WorldLinearization, damping: float
+                ) -> tuple[float | None, WorldLinearization]:
+    """Take one exact Gauss–Newton step from the linearization ``lin`` (at the solver's
+    estimate), raising the Levenberg damping until χ² does not rise.
 
-
-def solver_chi2(solver: H2OSolver) -> float:
-    """χ² of all the solver's edges at its current estimate."""
-    R, t = solver.world_poses()
-    return chi2(edge_graph(solver, R, t))
-
-
-def damped_step(solver: H2OSolver, current: float, damping: float) -> tuple[float | None, float]:
-    """Take one exact Gauss–Newton step, raising the Levenberg damping until χ² does not
-    rise.
-
-    Returns the damping to use next (None when no step helps) and the new χ².
+    Returns the damping to use next (None when no step helps) and the linearization at the
+    new estimate (``lin`` when none): its χ² scores the step, its system gives the next one.
     """
     saved_R = solver.tree.R.copy()
     saved_t = solver.tree.t.copy()
     for _ in range(12):
-        x, nodes = solver.exact_step(damping)
+        x, nodes = solver.exact_step(damping, lin)
         solver.apply_step(nodes, x)
-        new = solver_chi2(solver)
-        if np.isfinite(new) and new <= current:
+        new = solver.linearize_world()
+        if np.isfinite(new.chi2) and new.chi2 <= lin.chi2:
             return damping / 10.0 if damping > 1e-9 else 0.0, new
         solver.tree.R[:] = saved_R
         solver.tree.t[:] = saved_t
         damping = max(1e-6, damping * 10.0)
-    return None, current
+    return None, lin
 
 
 def converge_exact(solver: H2OSolver, iterations: int) -> tuple[list[float], bool]:
@@ -141,16 +130,17 @@ def converge_exact(solver: H2OSolver, iterations: int) -> tuple[list[float], boo
     converged.
     """
     tol = solver.config.exact_tolerance
-    history = [solver_chi2(solver)]
+    lin = solver.linearize_world()
+    history = [lin.chi2]
     damping = 0.0
     for _ in range(iterations):
         current = history[-1]
-        damping_next, new = damped_step(solver, current, damping)
+        damping_next, lin = damped_step(solver, lin, damping)
         if damping_next is None:
             return history, True
         damping = damping_next
-        history.append(new)
-        if current - new <= tol * max(current, 1e-300):
+        history.append(lin.chi2)
+        if current - lin.chi2 <= tol * max(current, 1e-300):
             return history, True
     return history, False
 
@@ -433,7 +423,8 @@ def merge_solution(tree: PoseTree, sol: Solution, lo: int, hi: int) -> None:
     parent = tree.parent[idx]
     top = parent == EARTH
     inside = ~top & (parent < sol.nodes)
-    tree.R[idx[top]], tree.t[idx[top]] = sol.R[idx[top]], sol.t[idx[top]]
+    tree.R[idx[top]] = geo.renormalize(sol.R[idx[top]])
+    tree.t[idx[top]] = sol.t[idx[top]]
     i, p = idx[inside], parent[inside]
     R_loc, t_loc = geo.between(sol.R[p], sol.t[p], sol.R[i], sol.t[i])
     tree.R[i] = geo.renormalize(R_loc)

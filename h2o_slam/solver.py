@@ -76,6 +76,19 @@ class Linearization:
 
 
 @dataclass(frozen=True)
+class WorldLinearization:
+    """All edges linearized at one estimate, in world coordinates (exact mode): the world
+    poses, the normal equations' values in ``system``'s pattern, and the χ² there."""
+
+    R: Array
+    x: Array
+    system: WorldSystem
+    data: Array  # H = JᵀJ, undamped
+    g: Array  # Jᵀr
+    chi2: float
+
+
+@dataclass(frozen=True)
 class RelaxOutcome:
     """What one single-edge update did.
 
@@ -134,7 +147,6 @@ class H2OSolver:
         #: χ² of the edge most recently added, at the moment it was added.
         self.last_chi2 = 0.0
         self._world: WorldSystem | None = None
-        self._world_memo: tuple[PoseTree, np.ndarray, Array, Array, Array, Array] | None = None
 
     # -- building -----------------------------------------------------------------------------
 
@@ -322,24 +334,8 @@ class H2OSolver:
         return 0 if root == EARTH else int(self.tree.depth[root])
 
     def world_poses(self) -> tuple[Array, Array]:
-        """World poses of all nodes, shapes ``(N, 3, 3)`` and ``(N, 3)`` (new arrays).
-
-        The last answer is kept beside a copy of the tree it came from; asked again for an
-        unchanged tree (exact mode scores a step, then linearizes at it) it is copied, not
-        composed again level by level (40 ms on kitti_00's 4541-node, deep tree).
-        """
-        tree = self.tree
-        n = tree.n
-        memo = self._world_memo
-        if (memo is not None and memo[0] is tree and len(memo[1]) == n
-                and np.array_equal(memo[1], tree.parent[:n])
-                and np.array_equal(memo[2], tree.t[:n])
-                and np.array_equal(memo[3], tree.R[:n])):
-            return memo[4].copy(), memo[5].copy()
-        R, t = tree.world_poses()
-        self._world_memo = (tree, tree.parent[:n].copy(), tree.t[:n].copy(),
-                            tree.R[:n].copy(), R.copy(), t.copy())
-        return R, t
+        """World poses of all nodes, shapes ``(N, 3, 3)`` and ``(N, 3)`` (new arrays)."""
+        return self.tree.world_poses()
 
     def chi2(self, graph: PoseGraph) -> float:
         """χ² of ``graph`` (the graph this solver holds) at the solver's current estimate."""
@@ -541,26 +537,35 @@ class H2OSolver:
         _apply_local(self.tree.R, self.tree.t, np.ascontiguousarray(nodes, dtype=np.int64),
                      np.ascontiguousarray(x, dtype=float), self.dof, float(scale))
 
-    def exact_step(self, damping: float = 0.0) -> tuple[Array, np.ndarray]:
+    def linearize_world(self) -> WorldLinearization:
+        """Every edge linearized at the current estimate, for :meth:`exact_step`."""
+        R, x = self.world_poses()
+        system, J, r = self._world_system(R, x)
+        data, g = system.assemble(J, r)
+        return WorldLinearization(R, x, system, data, g, float(np.sum(r * r)))
+
+    def exact_step(self, damping: float = 0.0, lin: WorldLinearization | None = None
+                   ) -> tuple[Array, np.ndarray]:
         """The Gauss–Newton step of all edges as a local step per node, without applying it.
 
         Solved in world coordinates, where ``JᵀJ`` has the sparsity of the graph (the tree's
         local coordinates would make every edge's domain a dense clique), then mapped to the
         tree's local coordinates by the exact linear change of variables.
-        ``damping`` adds ``damping · diag(H)`` (Levenberg–Marquardt). The system's pattern
-        and its factorization's symbolic analysis are kept for the next call while the
-        edges and the free nodes stay (:class:`WorldSystem`).
+        ``damping`` adds ``damping · diag(H)`` (Levenberg–Marquardt). ``lin``: the
+        linearization at the current estimate, when the caller has it (a damping retry
+        reuses it). The system's pattern and its factorization's symbolic analysis are kept
+        for the next call while the edges and the free nodes stay (:class:`WorldSystem`).
 
         Returns:
             ``(x, nodes)``: the local step ``(len(nodes), p)`` for the nodes that move.
         """
-        R, x = self.world_poses()
-        system, J, r = self._world_system(R, x)
-        data, g = system.assemble(J, r, damping)
+        lin = self.linearize_world() if lin is None else lin
+        system = lin.system
         step = np.zeros((self.num_nodes, 6))
         free = system.free
-        step[np.ix_(free, self.dof)] = -system.solve(data, g).reshape(len(free), self.p)
-        local = self._world_to_local(R, x, step)
+        step[np.ix_(free, self.dof)] = -system.solve(
+            system.damped(lin.data, damping), lin.g).reshape(len(free), self.p)
+        local = self._world_to_local(lin.R, lin.x, step)
         return local[:, self.dof][free], free
 
     def normal_equations(self) -> tuple[sp.csc_matrix, Array, np.ndarray]:
@@ -935,9 +940,15 @@ class WorldSystem:
                           dtype=float)
         grad = np.einsum("mki,mk->mi", J, r).ravel()
         g = np.asarray(np.bincount(self._gather, grad, minlength=self.size + 1), dtype=float)
-        if damping > 0.0:
-            data[self._diag] *= 1.0 + damping
-        return data[: self.nnz], g[: self.size]
+        return self.damped(data[: self.nnz], damping), g[: self.size]
+
+    def damped(self, data: Array, damping: float) -> Array:
+        """``data`` of ``H + damping · diag(H)`` (a copy when ``damping > 0``)."""
+        if damping <= 0.0:
+            return data
+        out = data.copy()
+        out[self._diag] *= 1.0 + damping
+        return out
 
     def matrix(self, data: Array) -> sp.csc_matrix:
         """The full symmetric matrix with values ``data``."""

@@ -193,6 +193,20 @@ def test_batch_of_all_edges_is_the_gauss_newton_step(planar):
     assert np.allclose(got, x_world, rtol=1e-8, atol=1e-9)
 
 
+@pytest.mark.parametrize("planar", [True, False])
+def test_world_linearization_scores_the_estimate_as_the_graph_chi2(planar):
+    # Exact mode accepts or refuses a step by the linearization's χ² (Σ r²): it must be the
+    # graph's χ², the metric every report and benchmark uses.
+    graph = random_graph(8, planar, n=11, loops=6, gps=3, orientation=1)
+    solver, _ = build_solver(graph, UNCAPPED)
+    step, nodes = solver.exact_step()
+    solver.apply_step(nodes, 0.5 * step)
+    R, t = solver.world_poses()
+    expected = chi2(graph, R, t)
+    assert expected > 1e-3
+    assert solver.linearize_world().chi2 == pytest.approx(expected, rel=1e-10)
+
+
 def test_batch_with_gps_edges_moves_the_subtree_top():
     graph = random_graph(4, False, n=7, loops=2, gps=4)
     solver, _ = build_solver(graph, UNCAPPED)
