@@ -50,6 +50,8 @@ class SolveResult:
         chi2_after_idle: online mode: χ² after the idle steps that follow.
         idle_steps: online mode: idle steps run after the last arrival.
         idle_steps_between: online mode, paced: idle steps run between arrivals.
+        updates: online mode: single-edge and GPS-batch updates run in the arrivals'
+            callbacks (new edges, revisits, and updates the guard undid).
         exact: online mode: what the exact solves beside the updates did.
         samples: online mode: ``(poses so far, χ² of their edges at the estimate then)``
             after the callback of each pose in ``sample_nodes`` (see :func:`sample_points`).
@@ -70,6 +72,7 @@ class SolveResult:
     chi2_after_idle: float | None = None
     idle_steps: int = 0
     idle_steps_between: int = 0
+    updates: int = 0
     samples: list[tuple[int, float]] = field(default_factory=list)
     exact: ConvergeState | None = None
     start: tuple[Array, Array] | None = None
@@ -280,6 +283,7 @@ def _stream(h2o: OnlineH2O, graph: PoseGraph, budget_s: float | None, trace_ever
         left = None if budget_s is None else budget_s - (time.perf_counter() - start)
         report = h2o.step(None if left is None else max(left, 0.0))
         elapsed = time.perf_counter() - start
+        result.updates += report.relaxed + report.revisited + report.undone
         spent += elapsed
         result.per_callback_ms.append(1e3 * elapsed)
         result.required_ms.append(1e3 * (elapsed - report.revisit_s))

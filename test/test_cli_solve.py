@@ -90,6 +90,17 @@ def test_paced_online_run_reports_its_period_and_idle_steps(planar_file, tmp_pat
     data = json.loads(report.read_text())
     assert data["period_ms"] == 3.0
     assert data["idle_steps_between"] > 0
+    assert 0 < data["updates"]
+
+
+def test_unbudgeted_online_run_counts_an_update_for_every_new_edge(planar_file, tmp_path):
+    out, report = tmp_path / "o.g2o", tmp_path / "r.json"
+    assert main([str(planar_file), "--output", str(out), "--mode", "online", "--idle-s", "0",
+                 "--report", str(report)]) == 0
+    data = json.loads(report.read_text())
+    # Each arrival's edges are relaxed in its callback, all but its own tree edge (which
+    # starts satisfied).
+    assert data["updates"] >= data["edges"] - (data["nodes"] - 1) > 0
 
 
 def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, list[str], str]:

@@ -159,6 +159,7 @@ class SolveReport:
     idle_steps: int | None = None
     period_ms: float | None = None
     idle_steps_between: int | None = None
+    updates: int | None = None
     exact: dict[str, Any] | None = None
     samples: list[list[float]] | None = None
 
@@ -229,6 +230,7 @@ def solve_file(
         idle_s=opt.idle_s if online else None, idle_steps=result.idle_steps if online else None,
         period_ms=opt.period_ms if online else None,
         idle_steps_between=result.idle_steps_between if online else None,
+        updates=result.updates if online else None,
         exact=asdict(result.exact) if result.exact is not None else None,
         samples=[list(sample) for sample in result.samples] if online else None,
     )
