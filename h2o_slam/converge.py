@@ -458,9 +458,9 @@ class Converger:
         self._failed_at = -1  # edges when the last solve failed: retried once more arrive
         self._merging: Solution | None = None
         self._cursor = 0
-        # Seconds: a whole inline solve by edges; a merge by nodes; a snapshot by nodes and
-        # new edges (memory copies: measured 5 ns a node on 10k nodes).
-        self.inline_cost = CostModel((2e-3, 5e-5), (1000.0,))
+        # Seconds: an inline solve by edges × linearizations; a merge by nodes; a snapshot by
+        # nodes (memory copies: measured 5 ns a node on 10k nodes).
+        self.inline_cost = CostModel((1e-3, 4e-6), (30000.0,))
         self.merge_cost = CostModel((2e-5, 2e-7), (1000.0,))
         self.copy_cost = CostModel((5e-5, 2e-8), (1000.0,))
 
@@ -492,7 +492,10 @@ class Converger:
         self._stream_edges()
         if self._merging is None and not self.busy and self._wanted(unlimited, idle):
             if unlimited or self._inline_fits(deadline - clock(), safety, idle):
-                self._solve_inline(clock)
+                # Budgeted, a few iterations at a time as the worker's jobs: the cost of a
+                # solve to convergence depends on iterations no model can foresee (an idle
+                # step of 10 ms ran 24 ms).
+                self._solve_inline(clock, self.iterations if unlimited else self.job_iterations)
             elif self._worker is not None:
                 self._dispatch(deadline, clock, safety)
         if self._merging is None:
@@ -510,25 +513,27 @@ class Converger:
         return m - self.state.converged_edges > self.growth * self.state.converged_edges
 
     def _inline_fits(self, remaining: float, safety: float, idle: bool) -> bool:
-        m = self.solver.num_edges
+        work = self.solver.num_edges * (self.job_iterations + 1)
         if not (idle or self._worker is None or self.state.converged_edges == 0):
             # Beside a worker, inline solves are for the small graphs it is not needed for.
-            return self.inline_cost.predict(m) * 4.0 < remaining
-        return self.inline_cost.predict(m) * self.inline_cost.margin(safety) < remaining
+            return self.inline_cost.predict(work) * 4.0 < remaining
+        return self.inline_cost.predict(work) * self.inline_cost.margin(safety) < remaining
 
     def _snapshot(self) -> tuple[np.ndarray, Array, Array]:
         n = self.solver.num_nodes
         tree = self.solver.tree
         return tree.parent[:n], tree.R[:n], tree.t[:n]
 
-    def _solve_inline(self, clock: Any) -> None:
+    def _solve_inline(self, clock: Any, iterations: int) -> None:
+        """Solve here and now, ``iterations`` at most; the cost model learns seconds per
+        edge and linearization (one per iteration, and the start)."""
         begin = clock()
         solver = self._inline.solver
         self._inline.add_edges(EdgeRows.of(self.solver, solver.num_edges))
         parent, R, t = self._snapshot()
         sol = self._inline.solve(parent.copy(), R.copy(), t.copy(), self.solver.num_edges,
-                                 self.generation, self.iterations)
-        self.inline_cost.update(clock() - begin, self.solver.num_edges)
+                                 self.generation, iterations)
+        self.inline_cost.update(clock() - begin, self.solver.num_edges * (sol.iterations + 1))
         self._received(sol)
 
     #: Most edges one step writes to the worker's file (a few hundred microseconds): new
@@ -640,7 +645,7 @@ class Converger:
         self._merging = None
         if self.solver.num_edges == 0:
             return None
-        self._solve_inline(clock)
+        self._solve_inline(clock, self.iterations)
         if self._merging is None:
             return None
         return self._merge(math.inf, clock, 1.0)
