@@ -2,8 +2,10 @@
 
 G. Grisetti, C. Stachniss, S. Grzonka and W. Burgard, "A tree parameterization for
 efficiently computing maximum likelihood maps using gradient descent", RSS 2007 — the 2-D
-method the thesis compares H₂O against (its [17]). Planar graphs of relative edges only; the
-3-D variant (Grisetti et al., IROS 2007) is not implemented.
+method the thesis compares H₂O against (its [17]) — for planar graphs; and its 3-D extension
+(Grisetti, Grzonka, Stachniss, Pfaff and Burgard, "Efficient estimation of accurate maximum
+likelihood maps in 3D", IROS 2007) for 3-D graphs (:class:`ToroProblem3`, below). Graphs of
+relative edges only.
 
 API (what the benchmarks import)::
 
@@ -37,6 +39,18 @@ The method, as the paper states it:
   iteration ``i`` (1, 2, …) uses ``λ_j = 1/(γ_j (i + 1))`` — the released TORO code's
   schedule (its iteration counter is 2 on the first pass), i.e. ``β = ℓ Ω' r / γ`` clipped on
   the first pass, decaying as ``1/i``.
+
+The 3-D variant (:class:`ToroProblem3`): parameters are local transforms to the parent, and
+each edge is relaxed in two steps. *Rotation*: the world-frame turn ``φ = Log(R_a K_R R_bᵀ)``
+that would put ``b`` at ``a ⊕ K`` is spread along the path — node ``k`` on ``b``'s side turns
+by ``+f s_k φ``, on ``a``'s side by ``−f s_k φ``, ``s_k`` the share of the path's compliance
+``1/M_rot`` from ``k`` up to the top — and local rotations are re-derived, local
+translations kept (the chain bends). *Translation*: ``b``'s offset from ``a ⊕ K`` is spread
+the same way as world-frame position offsets, and local translations are re-derived. The
+fractions ``f = min(1, 2 √ℓ ω_rot/(γ_rot (i+1)))`` and ``min(1, 2 ℓ ω_trans/(γ_trans (i+1)))``
+use each edge's smallest rotational / translational information ``ω`` (the released code's
+scalar weights), with the 2-D schedule; the released 3-D code divides by ``ω`` instead,
+which is not scale-free, and takes its path weights from the swapped preconditioner.
 
 Differences from the released code, both deliberate: poses are always the exact sum of their
 root path's parameters (the code keeps stale poses off the updated path within an iteration),
@@ -174,7 +188,9 @@ def solve_toro(
         InputError: the graph is 3-D or has global edges.
     """
     begin = time.perf_counter()
-    problem = ToroProblem.from_graph(graph, init)
+    problem: ToroProblem | ToroProblem3 = (
+        ToroProblem.from_graph(graph, init) if graph.planar
+        else ToroProblem3.from_graph(graph, init))
     spent = time.perf_counter() - begin
     history = ToroHistory([chi2(graph, *problem.estimate())], [spent])
     for _ in range(iterations):
@@ -303,3 +319,235 @@ def _propagate(parent: np.ndarray, a: np.ndarray, b: np.ndarray, top: np.ndarray
             while n != top[e]:
                 x[n] += sign * share / M[n]
                 n = parent[n]
+
+
+# -- 3-D (Grisetti, Grzonka, Stachniss, Pfaff and Burgard, IROS 2007) ----------------------------
+
+
+@dataclass
+class ToroProblem3:
+    """The 3-D variant's tree and parameters: each node's local transform to its parent.
+
+    Attributes as :class:`ToroProblem`, except: ``R, t`` the local transforms, shapes
+    ``(N, 3, 3)`` and ``(N, 3)`` (a root's is its world pose); ``meas_R, meas_t`` the
+    measurements; ``w_rot, w_trans`` each edge's smallest rotational and translational
+    information (the scalar weights the method uses).
+    """
+
+    parent: np.ndarray
+    level: np.ndarray
+    down: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    top: np.ndarray
+    meas_R: Array
+    meas_t: Array
+    w_rot: Array
+    w_trans: Array
+    order: np.ndarray
+    R: Array
+    t: Array
+    iteration: int = 0
+
+    @classmethod
+    def from_graph(cls, graph: PoseGraph, init: str = "tree") -> ToroProblem3:
+        """As :meth:`ToroProblem.from_graph`, for a graph of relative edges in 3-D (or planar,
+        treated as 3-D)."""
+        if np.any(graph.kind != EdgeKind.RELATIVE):
+            raise InputError("TORO relaxes relative edges only; the graph has global edges")
+        if init not in ("tree", "input"):
+            raise ValueError(f"unknown init {init!r}; choose 'tree' or 'input'")
+        parent = spanning_parents(graph.num_nodes, graph.a, graph.b)
+        R, t = graph.R, graph.t
+        if init == "tree":
+            from h2o_slam.modes import tree_estimate
+
+            R, t = tree_estimate(graph, parent)
+        level, down = _levels(parent)
+        top = _lowest_common_ancestors(parent, level, graph.a, graph.b)
+        diag = np.diagonal(graph.info, axis1=1, axis2=2)
+        if graph.num_edges and (np.min(diag[:, :3]) <= 0.0 or np.min(diag[:, 3:]) <= 0.0):
+            raise InputError("TORO (3-D) needs positive information on every axis of every "
+                             "edge")
+        local_R, local_t = R.copy(), t.copy()
+        inner = np.flatnonzero(parent != EARTH)
+        local_R[inner], local_t[inner] = geo.between(R[parent[inner]], t[parent[inner]],
+                                                     R[inner], t[inner])
+        return cls(parent, level, down, graph.a.copy(), graph.b.copy(), top,
+                   graph.meas_R.copy(), graph.meas_t.copy(), diag[:, 3:].min(axis=1).copy(),
+                   diag[:, :3].min(axis=1).copy(), np.argsort(level[top], kind="stable"),
+                   local_R, local_t)
+
+    def estimate(self) -> tuple[Array, Array]:
+        """World rotations ``(N, 3, 3)`` and positions ``(N, 3)``."""
+        return _all_poses3(self.down, self.parent, self.R, self.t)
+
+    def iterate(self) -> None:
+        """One iteration over every edge (rotations first, then translations, per edge)."""
+        self.iteration += 1
+        M_rot, M_trans = _preconditioner3(self.parent, self.a, self.b, self.top, self.w_rot,
+                                          self.w_trans)
+        _propagate3(self.parent, self.a, self.b, self.top, self.meas_R, self.meas_t,
+                    self.w_rot, self.w_trans, self.order, self.R, self.t, M_rot, M_trans,
+                    float(self.w_rot.min()), float(self.w_trans.min()),
+                    float(self.iteration + 1))
+
+
+@kernel
+def _all_poses3(down: np.ndarray, parent: np.ndarray, R: np.ndarray,
+                t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    GR, Gt = np.empty_like(R), np.empty_like(t)
+    for k in range(len(down)):
+        i = down[k]
+        p = parent[i]
+        if p < 0:
+            GR[i], Gt[i] = R[i], t[i]
+        else:
+            GR[i] = GR[p] @ R[i]
+            Gt[i] = Gt[p] + GR[p] @ t[i]
+    return GR, Gt
+
+
+@kernel
+def _preconditioner3(parent: np.ndarray, a: np.ndarray, b: np.ndarray, top: np.ndarray,
+                     w_rot: np.ndarray, w_trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    M_rot, M_trans = np.zeros(len(parent)), np.zeros(len(parent))
+    for e in range(len(a)):
+        for n in (a[e], b[e]):
+            while n != top[e]:
+                M_rot[n] += w_rot[e]
+                M_trans[n] += w_trans[e]
+                n = parent[n]
+    return M_rot, M_trans
+
+
+@kernel
+def _exp3(w: np.ndarray) -> np.ndarray:
+    theta = np.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if theta < 1e-9:
+        return np.eye(3) + K + 0.5 * (K @ K)
+    return (np.eye(3) + (np.sin(theta) / theta) * K
+            + ((1.0 - np.cos(theta)) / theta**2) * (K @ K))
+
+
+@kernel
+def _log3(R: np.ndarray) -> np.ndarray:
+    cos = min(1.0, max(-1.0, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)))
+    vee = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    sin = 0.5 * np.sqrt(vee[0] ** 2 + vee[1] ** 2 + vee[2] ** 2)
+    theta = np.arctan2(sin, cos)
+    if theta < 1e-9:
+        return 0.5 * vee
+    if sin < 1e-6:  # θ near π: the axis from the symmetric part's largest column
+        S = 0.5 * (R + R.T) - cos * np.eye(3)
+        k = np.argmax(np.array([S[0, 0], S[1, 1], S[2, 2]]))
+        col = np.ascontiguousarray(S[:, k])
+        axis = col / np.sqrt(col @ col)
+        return theta * axis
+    return (theta / (2.0 * sin)) * vee
+
+
+@kernel
+def _orthonormal(R: np.ndarray) -> np.ndarray:
+    """One Newton step of the polar decomposition (drift from many products)."""
+    return 0.5 * R @ (3.0 * np.eye(3) - R.T @ R)
+
+
+@kernel
+def _chain(parent: np.ndarray, node: int, stop: int, out: np.ndarray) -> int:
+    """Nodes from ``node`` up to ``stop`` (exclusive) into ``out``; returns their count."""
+    k = 0
+    while node != stop:
+        out[k] = node
+        k += 1
+        node = parent[node]
+    return k
+
+
+@kernel
+def _world_of(parent: np.ndarray, R: np.ndarray, t: np.ndarray,
+              node: int) -> tuple[np.ndarray, np.ndarray]:
+    GR, Gt = np.eye(3), np.zeros(3)
+    while node >= 0:
+        Gt = R[node] @ Gt + t[node]
+        GR = R[node] @ GR
+        node = parent[node]
+    return GR, Gt
+
+
+@kernel
+def _chain_world(chain: np.ndarray, n: int, R: np.ndarray, t: np.ndarray, top_R: np.ndarray,
+                 top_t: np.ndarray, GR: np.ndarray, Gt: np.ndarray) -> None:
+    """World poses of ``chain[:n]`` (bottom-up, its last node a child of the top)."""
+    pR, pt = top_R, top_t
+    for k in range(n - 1, -1, -1):
+        i = chain[k]
+        GR[k] = pR @ R[i]
+        Gt[k] = pt + pR @ t[i]
+        pR, pt = GR[k], Gt[k]
+
+
+@kernel
+def _propagate3(parent: np.ndarray, a: np.ndarray, b: np.ndarray, top: np.ndarray,
+                meas_R: np.ndarray, meas_t: np.ndarray, w_rot: np.ndarray,
+                w_trans: np.ndarray, order: np.ndarray, R: np.ndarray, t: np.ndarray,
+                M_rot: np.ndarray, M_trans: np.ndarray, gamma_rot: float, gamma_trans: float,
+                it: float) -> None:
+    n = len(parent)
+    chains = np.empty((2, n), np.int64)
+    GR = np.empty((2, n, 3, 3))
+    Gt = np.empty((2, n, 3))
+    lens = np.zeros(2, np.int64)
+    for e in order:
+        lens[0] = _chain(parent, a[e], top[e], chains[0])
+        lens[1] = _chain(parent, b[e], top[e], chains[1])
+        length = lens[0] + lens[1]
+        top_R, top_t = _world_of(parent, R, t, top[e])
+        for s in range(2):
+            _chain_world(chains[s], lens[s], R, t, top_R, top_t, GR[s], Gt[s])
+        Ra = GR[0, 0] if lens[0] else top_R
+        Rb = GR[1, 0] if lens[1] else top_R
+        # Rotation: the world-frame turn that takes b to a·K, spread along the path.
+        phi = _log3(Ra @ meas_R[e] @ Rb.T)
+        factor = min(1.0, 2.0 * np.sqrt(length) * w_rot[e] / (gamma_rot * it))
+        total = 0.0
+        for s in range(2):
+            for k in range(lens[s]):
+                total += 1.0 / M_rot[chains[s][k]]
+        for s in range(2):
+            sign = -1.0 if s == 0 else 1.0
+            acc = 0.0
+            for k in range(lens[s] - 1, -1, -1):  # from the top's child down to the end
+                acc += 1.0 / M_rot[chains[s][k]]
+            for k in range(lens[s]):  # suffix sums: node k's share is from k to the top
+                turn = _exp3((sign * factor * acc / total) * phi)
+                GR[s][k] = turn @ GR[s][k]
+                acc -= 1.0 / M_rot[chains[s][k]]
+            for k in range(lens[s]):
+                pR = GR[s][k + 1] if k + 1 < lens[s] else top_R
+                R[chains[s][k]] = _orthonormal(pR.T @ GR[s][k])
+        # Translation: b's offset from a·K, spread along the path.
+        for s in range(2):
+            _chain_world(chains[s], lens[s], R, t, top_R, top_t, GR[s], Gt[s])
+        Ra = GR[0, 0] if lens[0] else top_R
+        ta = Gt[0, 0] if lens[0] else top_t
+        tb = Gt[1, 0] if lens[1] else top_t
+        residual = ta + Ra @ meas_t[e] - tb
+        factor = min(1.0, 2.0 * length * w_trans[e] / (gamma_trans * it))
+        total = 0.0
+        for s in range(2):
+            for k in range(lens[s]):
+                total += 1.0 / M_trans[chains[s][k]]
+        for s in range(2):
+            sign = -1.0 if s == 0 else 1.0
+            acc = 0.0
+            for k in range(lens[s]):
+                acc += 1.0 / M_trans[chains[s][k]]
+            for k in range(lens[s]):
+                Gt[s][k] = Gt[s][k] + (sign * factor * acc / total) * residual
+                acc -= 1.0 / M_trans[chains[s][k]]
+            for k in range(lens[s]):
+                pR = GR[s][k + 1] if k + 1 < lens[s] else top_R
+                pt = Gt[s][k + 1] if k + 1 < lens[s] else top_t
+                t[chains[s][k]] = pR.T @ (Gt[s][k] - pt)
