@@ -68,6 +68,7 @@ def warm_up() -> None:
     from h2o_slam.graph import EARTH, EdgeKind
     from h2o_slam.jacobians import chain_jacobians, endpoint_jacobians
     from h2o_slam.solver import H2OSolver
+    from h2o_slam.tree import PoseTree
 
     geo.so3_exp(np.zeros(3))
     geo.so3_log(np.eye(3))
@@ -91,5 +92,6 @@ def warm_up() -> None:
         solver.relax(loop, d_max=2)
         solver.relax(loop, d_max=2, guard=True)
         solver.relax_batch([gps])
-        solver.world_poses()
-        solver.tree.tops()
+        tree = PoseTree.from_parents(solver.tree.parent[: solver.num_nodes],
+                                     *solver.world_poses())
+        tree.tops()
