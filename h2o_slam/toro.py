@@ -132,18 +132,7 @@ class ToroProblem:
         """
         if not graph.planar:
             raise InputError("TORO here is the planar (RSS 2007) method; the graph is 3-D")
-        if np.any(graph.kind != EdgeKind.RELATIVE):
-            raise InputError("TORO relaxes relative edges only; the graph has global edges")
-        if init not in ("tree", "input"):
-            raise ValueError(f"unknown init {init!r}; choose 'tree' or 'input'")
-        parent = spanning_parents(graph.num_nodes, graph.a, graph.b)
-        R, t = graph.R, graph.t
-        if init == "tree":
-            from h2o_slam.modes import tree_estimate
-
-            R, t = tree_estimate(graph, parent)
-        level, down = _levels(parent)
-        top = _lowest_common_ancestors(parent, level, graph.a, graph.b)
+        parent, level, down, top, R, t = _tree_and_start(graph, init)
         meas = np.column_stack([graph.meas_t[:, :2], geo.matrix_to_yaw(graph.meas_R)])
         info = graph.info[:, geo.PLANAR_DOF][:, :, geo.PLANAR_DOF].copy()
         order = np.argsort(level[top], kind="stable")
@@ -200,6 +189,31 @@ def solve_toro(
         history.chi2.append(chi2(graph, *problem.estimate()))
         history.seconds.append(spent)
     return graph.with_estimate(*problem.estimate()), history
+
+
+def _tree_and_start(
+    graph: PoseGraph, init: str,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Array, Array]:
+    """Parents, levels, breadth-first order and each edge's top on the breadth-first tree,
+    and the start (``R, t``) — shared by both variants.
+
+    Raises:
+        InputError: the graph has global edges.
+        ValueError: ``init`` is unknown.
+    """
+    if np.any(graph.kind != EdgeKind.RELATIVE):
+        raise InputError("TORO relaxes relative edges only; the graph has global edges")
+    if init not in ("tree", "input"):
+        raise ValueError(f"unknown init {init!r}; choose 'tree' or 'input'")
+    parent = spanning_parents(graph.num_nodes, graph.a, graph.b)
+    R, t = graph.R, graph.t
+    if init == "tree":
+        from h2o_slam.modes import tree_estimate
+
+        R, t = tree_estimate(graph, parent)
+    level, down = _levels(parent)
+    top = _lowest_common_ancestors(parent, level, graph.a, graph.b)
+    return parent, level, down, top, R, t
 
 
 def _levels(parent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -353,18 +367,7 @@ class ToroProblem3:
     def from_graph(cls, graph: PoseGraph, init: str = "tree") -> ToroProblem3:
         """As :meth:`ToroProblem.from_graph`, for a graph of relative edges in 3-D (or planar,
         treated as 3-D)."""
-        if np.any(graph.kind != EdgeKind.RELATIVE):
-            raise InputError("TORO relaxes relative edges only; the graph has global edges")
-        if init not in ("tree", "input"):
-            raise ValueError(f"unknown init {init!r}; choose 'tree' or 'input'")
-        parent = spanning_parents(graph.num_nodes, graph.a, graph.b)
-        R, t = graph.R, graph.t
-        if init == "tree":
-            from h2o_slam.modes import tree_estimate
-
-            R, t = tree_estimate(graph, parent)
-        level, down = _levels(parent)
-        top = _lowest_common_ancestors(parent, level, graph.a, graph.b)
+        parent, level, down, top, R, t = _tree_and_start(graph, init)
         diag = np.diagonal(graph.info, axis1=1, axis2=2)
         if graph.num_edges and (np.min(diag[:, :3]) <= 0.0 or np.min(diag[:, 3:]) <= 0.0):
             raise InputError("TORO (3-D) needs positive information on every axis of every "
@@ -489,6 +492,23 @@ def _chain_world(chain: np.ndarray, n: int, R: np.ndarray, t: np.ndarray, top_R:
 
 
 @kernel
+def _shares(chains: np.ndarray, lens: np.ndarray, M: np.ndarray, out: np.ndarray) -> None:
+    """Each path node's signed share of a correction: its side's compliance ``1/M`` from the
+    node up to the top over the whole path's, negative on ``a``'s side (``chains[0]``), so
+    that ``b`` moves by its side's share and ``a`` by minus its own: a whole correction."""
+    total = 0.0
+    for s in range(2):
+        for k in range(lens[s]):
+            total += 1.0 / M[chains[s][k]]
+    for s in range(2):
+        sign = -1.0 if s == 0 else 1.0
+        acc = 0.0
+        for k in range(lens[s] - 1, -1, -1):  # from the top's child down to the end
+            acc += 1.0 / M[chains[s][k]]
+            out[s, k] = sign * acc / total
+
+
+@kernel
 def _propagate3(parent: np.ndarray, a: np.ndarray, b: np.ndarray, top: np.ndarray,
                 meas_R: np.ndarray, meas_t: np.ndarray, w_rot: np.ndarray,
                 w_trans: np.ndarray, order: np.ndarray, R: np.ndarray, t: np.ndarray,
@@ -499,6 +519,7 @@ def _propagate3(parent: np.ndarray, a: np.ndarray, b: np.ndarray, top: np.ndarra
     GR = np.empty((2, n, 3, 3))
     Gt = np.empty((2, n, 3))
     lens = np.zeros(2, np.int64)
+    share = np.empty((2, n))
     for e in order:
         lens[0] = _chain(parent, a[e], top[e], chains[0])
         lens[1] = _chain(parent, b[e], top[e], chains[1])
@@ -511,19 +532,10 @@ def _propagate3(parent: np.ndarray, a: np.ndarray, b: np.ndarray, top: np.ndarra
         # Rotation: the world-frame turn that takes b to a·K, spread along the path.
         phi = _log3(Ra @ meas_R[e] @ Rb.T)
         factor = min(1.0, 2.0 * np.sqrt(length) * w_rot[e] / (gamma_rot * it))
-        total = 0.0
+        _shares(chains, lens, M_rot, share)
         for s in range(2):
             for k in range(lens[s]):
-                total += 1.0 / M_rot[chains[s][k]]
-        for s in range(2):
-            sign = -1.0 if s == 0 else 1.0
-            acc = 0.0
-            for k in range(lens[s] - 1, -1, -1):  # from the top's child down to the end
-                acc += 1.0 / M_rot[chains[s][k]]
-            for k in range(lens[s]):  # suffix sums: node k's share is from k to the top
-                turn = _exp3((sign * factor * acc / total) * phi)
-                GR[s][k] = turn @ GR[s][k]
-                acc -= 1.0 / M_rot[chains[s][k]]
+                GR[s][k] = _exp3((factor * share[s, k]) * phi) @ GR[s][k]
             for k in range(lens[s]):
                 pR = GR[s][k + 1] if k + 1 < lens[s] else top_R
                 R[chains[s][k]] = _orthonormal(pR.T @ GR[s][k])
@@ -535,18 +547,10 @@ def _propagate3(parent: np.ndarray, a: np.ndarray, b: np.ndarray, top: np.ndarra
         tb = Gt[1, 0] if lens[1] else top_t
         residual = ta + Ra @ meas_t[e] - tb
         factor = min(1.0, 2.0 * length * w_trans[e] / (gamma_trans * it))
-        total = 0.0
+        _shares(chains, lens, M_trans, share)
         for s in range(2):
             for k in range(lens[s]):
-                total += 1.0 / M_trans[chains[s][k]]
-        for s in range(2):
-            sign = -1.0 if s == 0 else 1.0
-            acc = 0.0
-            for k in range(lens[s]):
-                acc += 1.0 / M_trans[chains[s][k]]
-            for k in range(lens[s]):
-                Gt[s][k] = Gt[s][k] + (sign * factor * acc / total) * residual
-                acc -= 1.0 / M_trans[chains[s][k]]
+                Gt[s][k] = Gt[s][k] + (factor * share[s, k]) * residual
             for k in range(lens[s]):
                 pR = GR[s][k + 1] if k + 1 < lens[s] else top_R
                 pt = Gt[s][k + 1] if k + 1 < lens[s] else top_t
