@@ -343,7 +343,8 @@ Notes:
   H₂O: the `--output` g2o file read back), not the solver's own report.
 - χ²/opt divides by the smallest χ² any of the three solvers reached on that graph in this
   run (not a certified global optimum).
-- H₂O: `h2o-solve IN --output OUT --mode exact --report R.json` (default 20 iterations) and
+- H₂O: `h2o-solve IN --output OUT --mode exact --report R.json` (up to 100 iterations, until
+  the relative χ² decrease falls to 1e-10) and
   `--mode offline --passes 10`, run as subprocesses. Its time is `wall_s` of the report:
   the solve only, without interpreter start-up, the compiled kernels' loading and file I/O
   (the whole process time is in the checks table).
