@@ -27,7 +27,7 @@ from h2o_slam.geometry import Array
 from h2o_slam.graph import EARTH, EdgeKind, PoseGraph, chi2, edge_chi2
 from h2o_slam.online import OnlineConfig, OnlineH2O
 from h2o_slam.solver import H2OSolver, SolverConfig
-from h2o_slam.tree import PoseTree, spanning_parents
+from h2o_slam.tree import PoseTree, spanning_parents, tree_edges
 
 
 @dataclass
@@ -128,14 +128,11 @@ def tree_estimate(graph: PoseGraph, parents: np.ndarray) -> tuple[Array, Array]:
     Subtree tops keep their estimate from ``graph``.
     """
     tree = PoseTree.from_parents(parents, graph.R, graph.t)
-    rel = np.flatnonzero(graph.kind == EdgeKind.RELATIVE)
-    a, b = graph.a[rel], graph.b[rel]
-    down = rel[parents[b] == a]
-    up = rel[(parents[a] == b) & (parents[b] != a)]
-    # Later assignments win; write the reversed edges first so forward ones take precedence.
-    R_up, t_up = geo.inverse(graph.meas_R[up], graph.meas_t[up])
-    tree.R[graph.a[up]], tree.t[graph.a[up]] = R_up, t_up
-    tree.R[graph.b[down]], tree.t[graph.b[down]] = graph.meas_R[down], graph.meas_t[down]
+    edge, forward = tree_edges(graph, parents)
+    ahead = np.flatnonzero((edge >= 0) & forward)
+    back = np.flatnonzero((edge >= 0) & ~forward)
+    tree.R[ahead], tree.t[ahead] = graph.meas_R[edge[ahead]], graph.meas_t[edge[ahead]]
+    tree.R[back], tree.t[back] = geo.inverse(graph.meas_R[edge[back]], graph.meas_t[edge[back]])
     return tree.world_poses()
 
 

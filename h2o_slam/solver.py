@@ -37,7 +37,7 @@ from h2o_slam.graph import EARTH, EdgeKind, PoseGraph, chi2
 from h2o_slam.hybrid import solve_hybrid
 from h2o_slam.jacobians import endpoint_jacobians, endpoint_jacobians_one, path_linearization
 from h2o_slam.spd import SPDFactor
-from h2o_slam.tree import EdgePath, PoseTree
+from h2o_slam.tree import EdgePath, PoseTree, tree_edges
 
 
 @dataclass(frozen=True)
@@ -304,7 +304,7 @@ class H2OSolver:
         solver = cls(graph.planar, config)
         solver.tree = PoseTree.from_parents(parents, graph.R, graph.t)
         solver.B = np.zeros((graph.num_nodes, solver.p, solver.p))
-        solver.tree_edge, solver.tree_edge_forward = _tree_edges(graph, parents)
+        solver.tree_edge, solver.tree_edge_forward = tree_edges(graph, parents)
         solver._extend_edges(graph)
         for e in range(graph.num_edges if regularizer else 0):
             lin = solver.linearize(e)
@@ -781,23 +781,6 @@ class EdgeTable:
         except np.linalg.LinAlgError:
             self.W[s] = [whitening(x, dof) for x in self.info[s]]
         self.m = end
-
-
-def _tree_edges(graph: PoseGraph, parents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each node, an edge joining it to its parent and whether it points parent → node."""
-    n = graph.num_nodes
-    edge = np.full(n, -1, dtype=np.int64)
-    forward = np.ones(n, dtype=bool)
-    rel = np.flatnonzero(graph.kind == EdgeKind.RELATIVE)
-    a, b = graph.a[rel], graph.b[rel]
-    up = (parents[a] == b) & (parents[b] != a)
-    edge[a[up]] = rel[up]
-    forward[a[up]] = False
-    down = parents[b] == a
-    # Reversed order so that the first matching edge wins the assignment.
-    edge[b[down][::-1]] = rel[down][::-1]
-    forward[b[down]] = True
-    return edge, forward
 
 
 @kernel

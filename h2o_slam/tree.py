@@ -17,7 +17,7 @@ import numpy as np
 from h2o_slam import geometry as geo
 from h2o_slam.compiled import kernel
 from h2o_slam.geometry import Array
-from h2o_slam.graph import EARTH
+from h2o_slam.graph import EARTH, EdgeKind, PoseGraph
 
 
 @dataclass(frozen=True)
@@ -280,6 +280,26 @@ def _depths(parent: np.ndarray) -> np.ndarray:
     if not _depths_into(np.ascontiguousarray(parent, dtype=np.int64), depth):
         raise ValueError("parent pointers contain a cycle or an unknown parent")
     return depth
+
+
+def tree_edges(graph: PoseGraph, parents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each node, the relative edge joining it to its parent (-1 for none) and whether
+    it points parent → node. Of several, the first forward edge wins, else the first
+    reversed one: one choice for everything that concatenates tree edges."""
+    n = graph.num_nodes
+    edge = np.full(n, -1, dtype=np.int64)
+    forward = np.ones(n, dtype=bool)
+    rel = np.flatnonzero(graph.kind == EdgeKind.RELATIVE)
+    a, b = graph.a[rel], graph.b[rel]
+    up = (parents[a] == b) & (parents[b] != a)
+    down = parents[b] == a
+    # Assigned in reverse so that the first of several edges is the one that stays, and the
+    # forward ones last so that they win over reversed ones.
+    edge[a[up][::-1]] = rel[up][::-1]
+    forward[a[up]] = False
+    edge[b[down][::-1]] = rel[down][::-1]
+    forward[b[down]] = True
+    return edge, forward
 
 
 def spanning_parents(

@@ -26,3 +26,23 @@ def test_trees_rebuilt_from_their_world_poses_stay_rotations() -> None:
     R, t = tree.world_poses()
     assert np.all(np.isfinite(t))
     assert _orthonormality_error(R) < 1e-9
+
+
+def test_the_tree_start_and_the_solver_choose_the_same_tree_edges() -> None:
+    # Node 2 hangs from node 1 by two parallel forward edges and one reversed edge that
+    # disagree: whichever is chosen, the start must satisfy the edge the solver calls the
+    # tree edge (once, two functions broke such ties opposite ways).
+    from h2o_slam.graph import EdgeKind, edge_chi2, make_graph
+    from h2o_slam.modes import build_solver
+
+    yaw = [geo.yaw_to_matrix(np.array(v)) for v in (0.0, 0.1, 0.3, -0.2)]
+    steps = np.array([[1.0, 0, 0], [1.0, 0, 0], [1.5, 0.2, 0], [-0.9, 0.1, 0]])
+    kind = np.full(4, EdgeKind.RELATIVE, dtype=np.int8)
+    graph = make_graph(True, np.arange(3), np.tile(np.eye(3), (3, 1, 1)), np.zeros((3, 3)),
+                       kind, np.array([0, 1, 1, 2]), np.array([1, 2, 2, 1]),
+                       np.stack(yaw), steps, np.tile(np.eye(6), (4, 1, 1)))
+    solver, start = build_solver(graph, init="tree")
+    chosen = solver.tree_edge[[1, 2]]
+    assert chosen.tolist() == [0, 1]  # the first forward edge of each node
+    assert np.allclose(edge_chi2(start)[chosen], 0.0, atol=1e-20)
+    assert edge_chi2(start)[[2, 3]].min() > 1e-3
