@@ -751,6 +751,10 @@ def scenario(name: str, seed: int = 0, **overrides: object) -> DriveConfig:
     * ``loop``: a rounded square that returns to its start (two laps: loop closures).
     * ``slip``: the loop with heavy slip — slow drift and several hallucinated turns.
     * ``cluttered``: a gentle S-curve with many near objects beside the path.
+    * ``sharp_turns``: street corners taken briskly — 90° left and right in 1 s (9° a frame),
+      a 180° U-turn in 2 s and a 90° corner in 0.8 s (11° a frame), straights between.
+    * ``spin``: turns on the spot (speed 0): a full turn at π/2 rad/s and a half turn at the
+      thesis robot's top rate, π rad/s (18° a frame), between straights.
 
     ``overrides`` replace :class:`DriveConfig` fields (e.g. ``width_px=640``).
     """
@@ -789,8 +793,42 @@ def scenario(name: str, seed: int = 0, **overrides: object) -> DriveConfig:
                 hallucinated_turns=((12.0, 0.3, 0.5),),
             ),
         )
+    elif name == "sharp_turns":
+        right_angle = math.pi / 2
+        cfg = DriveConfig(
+            name=name,
+            seed=seed,
+            segments=(
+                (5.0, 1.3, 0.0),
+                (1.0, 1.0, right_angle),
+                (5.0, 1.3, 0.0),
+                (1.0, 1.0, -right_angle),
+                (4.0, 1.3, 0.0),
+                (2.0, 0.8, math.pi / 2.0),
+                (5.0, 1.3, 0.0),
+                (0.8, 0.8, right_angle / 0.8),
+                (5.0, 1.3, 0.0),
+            ),
+            num_objects=12,
+        )
+    elif name == "spin":
+        cfg = DriveConfig(
+            name=name,
+            seed=seed,
+            segments=(
+                (4.0, 1.3, 0.0),
+                (4.0, 0.0, math.pi / 2.0),
+                (4.0, 1.3, 0.0),
+                (1.0, 0.0, -math.pi),
+                (4.0, 1.3, 0.0),
+            ),
+            num_objects=12,
+        )
     else:
-        raise ConfigError(f"unknown scenario {name!r}; choose straight, loop, slip or cluttered")
+        raise ConfigError(
+            f"unknown scenario {name!r}; choose straight, loop, slip, cluttered, sharp_turns "
+            "or spin"
+        )
     if overrides:
         from dataclasses import replace
 
