@@ -30,7 +30,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from results_md import command, replace_section, revision  # noqa: E402
+from results_md import add_graph_arguments, command, publish, results_path, revision, select_graphs  # noqa: E402
 
 from h2o_slam import geometry as geo  # noqa: E402
 from h2o_slam import interpolate  # noqa: E402
@@ -42,8 +42,6 @@ from h2o_slam.modes import build_solver, offline_order  # noqa: E402
 from h2o_slam.solver import H2OSolver  # noqa: E402
 
 SECTION = "## Cost per constraint (bench/cost.py)"
-DEFAULT_DATA = REPO.parent / "shared" / "data" / "posegraphs"
-DEFAULT_RESULTS = REPO / "bench" / "RESULTS.md"
 DEFAULT_GRAPHS = ["city10000", "kitti_00", "manhattan"]
 #: ``None`` is D_max = ∞; "toro" the TORO-style update.
 SOLVERS: list[int | str | None] = ["toro", 75, 100, 150, 200, None]
@@ -237,47 +235,32 @@ def render_section(results: list[GraphCost]) -> str:
             f"{format_table(results)}\n\nTargets (issue 12):\n\n{targets(results)}\n{NOTES}")
 
 
-def run(data: Path, names: list[str], results_path: Path | None, repeat: int = 3) -> int:
+def run(data: Path, names: list[str], results: Path | None, repeat: int = 3) -> int:
     """Benchmark ``names`` from ``data``; return an exit code."""
-    if not data.is_dir():
-        print(f"cost.py: data folder {data} is missing; nothing to benchmark (pass --data DIR).")
-        return 0
-    missing = [n for n in names if not (data / f"{n}.g2o").exists()]
-    if missing:
-        print(f"cost.py: no such graph in {data}: {', '.join(missing)}", file=sys.stderr)
-        return 2
+    paths = select_graphs("cost.py", data, names)
+    if isinstance(paths, int):
+        return paths
     warm_up()
-    results = []
-    for name in names:
+    rows = []
+    for path in paths:
         try:
-            results.append(bench_graph(data / f"{name}.g2o", repeat))
+            rows.append(bench_graph(path, repeat))
         except H2OError as err:
-            print(f"cost.py: skipping {name}: {err}", file=sys.stderr)
-    if not results:
+            print(f"cost.py: skipping {path.stem}: {err}", file=sys.stderr)
+    if not rows:
         return 1
-    section = render_section(results)
-    print(section)
-    if results_path is not None:
-        replace_section(results_path, SECTION, section)
-        print(f"written to {results_path}", file=sys.stderr)
+    publish(render_section(rows), results, SECTION)
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments and run the benchmark."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, default=DEFAULT_DATA,
-                        help=f"folder of .g2o graphs (default {DEFAULT_DATA})")
-    parser.add_argument("--graphs", nargs="+", metavar="NAME", default=DEFAULT_GRAPHS,
-                        help=f"graphs (file stems; default {' '.join(DEFAULT_GRAPHS)})")
-    parser.add_argument("--results", type=Path, default=DEFAULT_RESULTS,
-                        help=f"markdown file to update (default {DEFAULT_RESULTS})")
+    add_graph_arguments(parser, DEFAULT_GRAPHS)
     parser.add_argument("--repeat", type=int, default=3, metavar="N",
                         help="passes per solver; each update keeps its fastest (default 3)")
-    parser.add_argument("--no-results", action="store_true", help="print only")
     args = parser.parse_args(argv)
-    return run(args.data, args.graphs, None if args.no_results else args.results,
-               max(1, args.repeat))
+    return run(args.data, args.graphs, results_path(args), max(1, args.repeat))
 
 
 if __name__ == "__main__":

@@ -47,7 +47,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from results_md import command, replace_section, revision
+from results_md import add_graph_arguments, command, publish, results_path, revision, select_graphs
 
 from h2o_slam import geometry as geo
 from h2o_slam import lago as lago_mod
@@ -57,9 +57,7 @@ from h2o_slam.graph import PoseGraph, chi2
 from h2o_slam.lago import lago, lago_estimate, solve_spd
 from h2o_slam.modes import solve_exact, solve_offline
 
-REPO = Path(__file__).resolve().parent.parent
-DEFAULT_DATA = REPO.parent / "shared" / "data" / "posegraphs"
-DEFAULT_RESULTS = REPO / "bench" / "RESULTS.md"
+REPO = Path(__file__).resolve().parents[1]
 SECTION = "## LAGO (bench/lago.py)"
 
 LM_MAX_ITERATIONS = 100
@@ -404,57 +402,32 @@ def render_section(rows: list[Row], passes: int, repeats: int) -> str:
             f"{format_tables(rows, passes)}\n\n{notes(repeats)}")
 
 
-def write_section(path: Path, section: str) -> None:
-    """Replace (or append) this benchmark's section of ``path``, keeping the others."""
-    replace_section(path, SECTION, section)
-
-
 def run(data: Path, names: list[str] | None, passes: int, repeats: int,
         results: Path | None) -> int:
-    if not data.is_dir():
-        print(f"lago.py: data folder {data} is missing; nothing to benchmark (pass --data DIR).")
-        return 0
-    paths = sorted(data.glob("*.g2o"))
-    if names:
-        by_stem = {p.stem: p for p in paths}
-        unknown = [n for n in names if n not in by_stem]
-        if unknown:
-            print(f"lago.py: no such graph in {data}: {', '.join(unknown)}", file=sys.stderr)
-            return 2
-        paths = [by_stem[n] for n in names]
+    paths = select_graphs("lago.py", data, names)
+    if isinstance(paths, int):
+        return paths
     planar = [p for p in paths if read_g2o(p).planar]
     if not planar:
         print(f"lago.py: no planar .g2o files in {data}; nothing to benchmark.")
         return 0
     with tempfile.TemporaryDirectory(prefix="h2o-lago-bench-") as tmp:
         rows = [bench_graph(p, Path(tmp), passes, repeats) for p in planar]
-    section = render_section(rows, passes, repeats)
-    print(section)
-    if results is not None:
-        write_section(results, section)
-        print(f"written to {results}", file=sys.stderr)
+    publish(render_section(rows, passes, repeats), results, SECTION)
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, default=DEFAULT_DATA,
-                        help=f"folder of .g2o graphs (default {DEFAULT_DATA}); 3-D ones skipped")
-    parser.add_argument("--graphs", nargs="+", metavar="NAME",
-                        help="run only these graphs (file stems, e.g. intel MIT)")
+    add_graph_arguments(parser)  # 3-D graphs are skipped
     parser.add_argument("--passes", type=int, default=30,
                         help="H₂O offline passes per start (default 30)")
     parser.add_argument("--repeats", type=int, default=5,
                         help="timed runs of each LAGO (median reported; default 5)")
-    parser.add_argument("--results", type=Path, default=DEFAULT_RESULTS,
-                        help=f"markdown file to update (default {DEFAULT_RESULTS})")
-    parser.add_argument("--no-results", action="store_true",
-                        help="print the tables only; do not touch the results file")
     args = parser.parse_args(argv)
     if args.passes < 0 or args.repeats < 1:
         parser.error("--passes must be ≥ 0 and --repeats ≥ 1")
-    return run(args.data, args.graphs, args.passes, args.repeats,
-               None if args.no_results else args.results)
+    return run(args.data, args.graphs, args.passes, args.repeats, results_path(args))
 
 
 if __name__ == "__main__":

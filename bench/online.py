@@ -54,7 +54,7 @@ from types import ModuleType
 from typing import Any
 
 import numpy as np
-from results_md import replace_section
+from results_md import REPO, add_graph_arguments, publish, results_path, select_graphs
 
 from h2o_slam.errors import H2OError
 from h2o_slam.g2o import read_g2o
@@ -77,9 +77,6 @@ def _load_solvers() -> ModuleType:
 
 solvers = _load_solvers()
 
-REPO = solvers.REPO
-DEFAULT_DATA = solvers.DEFAULT_DATA
-DEFAULT_RESULTS = REPO / "bench" / "RESULTS.md"
 DEFAULT_PLOTS = REPO / "bench" / "plots"
 SECTION = "## Online (bench/online.py)"
 
@@ -858,66 +855,35 @@ def render_section(results: list[GraphOnline], budgets_ms: list[float],
             f"{NOTES.format(period=f'{period_ms:g}')}")
 
 
-def write_section(path: Path, section: str) -> None:
-    """Replace (or append) this benchmark's section of ``path``, keeping the others."""
-    replace_section(path, SECTION, section)
-
-
 # --- entry point -------------------------------------------------------------------------------
 
 
-def _select(data: Path, names: list[str] | None) -> list[Path] | str:
-    """The graph files to run, or a message saying why there are none."""
-    paths = sorted(data.glob("*.g2o"))
-    if names:
-        by_stem = {p.stem: p for p in paths}
-        unknown = [n for n in names if n not in by_stem]
-        if unknown:
-            return f"no such graph in {data}: {', '.join(unknown)}"
-        paths = [by_stem[n] for n in names]
-    return paths
-
-
 def run(data: Path, names: list[str] | None, budgets_ms: list[float], timeout_s: float,
-        out_dir: Path | None, skip_isam2: bool, results_path: Path, plots: Path,
+        out_dir: Path | None, skip_isam2: bool, results: Path | None, plots: Path,
         period_ms: float = PERIOD_MS) -> int:
     """Benchmark the graphs of ``data`` (all, or ``names``); return an exit code."""
-    if not data.is_dir():
-        print(f"online.py: data folder {data} is missing; nothing to benchmark "
-              "(pass --data DIR).")
-        return 0
-    paths = _select(data, names)
-    if isinstance(paths, str):
-        print(f"online.py: {paths}", file=sys.stderr)
-        return 2
-    if not paths:
-        print(f"online.py: no .g2o files in {data}; nothing to benchmark.")
-        return 0
+    paths = select_graphs("online.py", data, names)
+    if isinstance(paths, int):
+        return paths
     with tempfile.TemporaryDirectory(prefix="h2o-online-") as tmp:
         target = out_dir if out_dir is not None else Path(tmp)
         target.mkdir(parents=True, exist_ok=True)
-        results, skipped = [], []
+        rows, skipped = [], []
         for p in paths:
             try:
-                results.append(bench_graph(p, target, budgets_ms, timeout_s, skip_isam2,
-                                           plots, period_ms))
+                rows.append(bench_graph(p, target, budgets_ms, timeout_s, skip_isam2,
+                                        plots, period_ms))
             except H2OError as err:  # the input itself cannot be read: no solver can run
                 print(f"online.py: skipping {p.name}: {err}", file=sys.stderr)
                 skipped.append(f"{p.stem}: {err}")
-    section = render_section(results, budgets_ms, skipped, period_ms)
-    print(section)
-    write_section(results_path, section)
-    print(f"written to {results_path}", file=sys.stderr)
+    publish(render_section(rows, budgets_ms, skipped, period_ms), results, SECTION)
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments and run the benchmark."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, default=DEFAULT_DATA,
-                        help=f"folder of .g2o graphs (default {DEFAULT_DATA})")
-    parser.add_argument("--graphs", nargs="+", metavar="NAME",
-                        help="run only these graphs (file stems, e.g. intel MIT)")
+    add_graph_arguments(parser)
     parser.add_argument("--budgets", nargs="+", type=float, metavar="MS",
                         default=list(DEFAULT_BUDGETS_MS),
                         help="H₂O per-callback budgets in ms (default 2 5 20)")
@@ -929,8 +895,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--period-ms", type=float, default=PERIOD_MS, metavar="MS",
                         help=f"one pose arrives every MS ms, H₂O's idle steps between "
                              f"(default {PERIOD_MS:g}; 0: back to back)")
-    parser.add_argument("--results", type=Path, default=DEFAULT_RESULTS,
-                        help=f"markdown file to update (default {DEFAULT_RESULTS})")
     parser.add_argument("--plots", type=Path, default=DEFAULT_PLOTS,
                         help=f"folder for the PNGs (default {DEFAULT_PLOTS})")
     args = parser.parse_args(argv)
@@ -939,7 +903,7 @@ def main(argv: list[str] | None = None) -> int:
     if not 0.0 <= args.period_ms < math.inf:
         parser.error("--period-ms must be a non-negative number")
     return run(args.data, args.graphs, args.budgets, args.timeout, args.output_dir,
-               args.skip_isam2, args.results, args.plots, args.period_ms)
+               args.skip_isam2, results_path(args), args.plots, args.period_ms)
 
 
 if __name__ == "__main__":

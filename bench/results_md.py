@@ -1,11 +1,17 @@
-"""Shared plumbing of the benchmarks: each owns one ``## …`` section of ``bench/RESULTS.md``."""
+"""Shared plumbing of the benchmarks: each owns one ``## …`` section of ``bench/RESULTS.md``,
+and those over the public pose graphs take the same ``--data/--graphs/--results`` arguments."""
 
 from __future__ import annotations
 
+import argparse
 import shlex
 import subprocess
 import sys
 from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_DATA = REPO.parent / "shared" / "data" / "posegraphs"
+DEFAULT_RESULTS = REPO / "bench" / "RESULTS.md"
 
 
 def command(repo: Path) -> str:
@@ -48,3 +54,51 @@ def replace_section(path: Path, heading: str, section: str) -> None:
         if after:
             new += "\n" + after.rstrip("\n") + "\n"
     path.write_text(new.lstrip("\n"))
+
+
+def add_graph_arguments(parser: argparse.ArgumentParser,
+                        default_graphs: list[str] | None = None) -> None:
+    """``--data``, ``--graphs``, ``--results`` and ``--no-results``."""
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA,
+                        help=f"folder of .g2o graphs (default {DEFAULT_DATA})")
+    parser.add_argument("--graphs", nargs="+", metavar="NAME", default=default_graphs,
+                        help="graphs to run, as file stems (default: "
+                        f"{' '.join(default_graphs) if default_graphs else 'all'})")
+    parser.add_argument("--results", type=Path, default=DEFAULT_RESULTS,
+                        help=f"markdown file to update (default {DEFAULT_RESULTS})")
+    parser.add_argument("--no-results", action="store_true",
+                        help="print the section only; do not touch the results file")
+
+
+def results_path(args: argparse.Namespace) -> Path | None:
+    """Where the section goes (None with ``--no-results``)."""
+    return None if args.no_results else args.results
+
+
+def select_graphs(prog: str, data: Path, names: list[str] | None) -> list[Path] | int:
+    """The ``.g2o`` files of ``data`` to run (all, or ``names`` in that order), or the exit
+    code after saying why there are none: 0 when there is nothing to benchmark (a missing
+    folder: the data are optional), 2 for a name with no file."""
+    if not data.is_dir():
+        print(f"{prog}: data folder {data} is missing; nothing to benchmark (pass --data DIR).")
+        return 0
+    paths = sorted(data.glob("*.g2o"))
+    if names:
+        by_stem = {p.stem: p for p in paths}
+        unknown = [n for n in names if n not in by_stem]
+        if unknown:
+            print(f"{prog}: no such graph in {data}: {', '.join(unknown)}", file=sys.stderr)
+            return 2
+        paths = [by_stem[n] for n in names]
+    if not paths:
+        print(f"{prog}: no .g2o files in {data}; nothing to benchmark.")
+        return 0
+    return paths
+
+
+def publish(section: str, path: Path | None, heading: str) -> None:
+    """Print the section and, unless ``path`` is None, replace it in ``path``."""
+    print(section)
+    if path is not None:
+        replace_section(path, heading, section)
+        print(f"written to {path}", file=sys.stderr)

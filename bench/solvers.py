@@ -29,16 +29,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from results_md import command, replace_section, revision
+from results_md import add_graph_arguments, command, publish, results_path, revision, select_graphs
 
 from h2o_slam import geometry as geo
 from h2o_slam.errors import H2OError
 from h2o_slam.g2o import read_g2o
 from h2o_slam.graph import EdgeKind, PoseGraph, chi2
 
-REPO = Path(__file__).resolve().parent.parent
-DEFAULT_DATA = REPO.parent / "shared" / "data" / "posegraphs"
-DEFAULT_RESULTS = REPO / "bench" / "RESULTS.md"
+REPO = Path(__file__).resolve().parents[1]
 SECTION = "## Solvers (bench/solvers.py)"
 
 #: LM settings (everything else is GTSAM's default, including the lambda schedule).
@@ -393,61 +391,36 @@ def render_section(results: list[GraphResult], skipped: list[str]) -> str:
             f"{format_tables(results)}\n\n{skip}{NOTES}")
 
 
-def write_section(path: Path, section: str) -> None:
-    """Replace (or append) this benchmark's section of ``path``, keeping the others."""
-    replace_section(path, SECTION, section)
-
-
 def run(data: Path, names: list[str] | None, timeout_s: float, out_dir: Path | None,
-        results_path: Path) -> int:
+        results: Path | None) -> int:
     """Benchmark the graphs of ``data`` (all, or ``names``); return an exit code."""
-    if not data.is_dir():
-        print(f"solvers.py: data folder {data} is missing; nothing to benchmark "
-              "(pass --data DIR).")
-        return 0
-    paths = sorted(data.glob("*.g2o"))
-    if names:
-        by_stem = {p.stem: p for p in paths}
-        unknown = [n for n in names if n not in by_stem]
-        if unknown:
-            print(f"solvers.py: no such graph in {data}: {', '.join(unknown)}", file=sys.stderr)
-            return 2
-        paths = [by_stem[n] for n in names]
-    if not paths:
-        print(f"solvers.py: no .g2o files in {data}; nothing to benchmark.")
-        return 0
+    paths = select_graphs("solvers.py", data, names)
+    if isinstance(paths, int):
+        return paths
     with tempfile.TemporaryDirectory(prefix="h2o-bench-") as tmp:
         target = out_dir if out_dir is not None else Path(tmp)
         target.mkdir(parents=True, exist_ok=True)
-        results, skipped = [], []
+        rows, skipped = [], []
         for p in paths:
             try:
-                results.append(bench_graph(p, target, timeout_s))
+                rows.append(bench_graph(p, target, timeout_s))
             except H2OError as err:  # the input itself cannot be read: no solver can run
                 print(f"solvers.py: skipping {p.name}: {err}", file=sys.stderr)
                 skipped.append(f"{p.stem}: {err}")
-    section = render_section(results, skipped)
-    print(section)
-    write_section(results_path, section)
-    print(f"written to {results_path}", file=sys.stderr)
+    publish(render_section(rows, skipped), results, SECTION)
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments and run the benchmark."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, default=DEFAULT_DATA,
-                        help=f"folder of .g2o graphs (default {DEFAULT_DATA})")
-    parser.add_argument("--graphs", nargs="+", metavar="NAME",
-                        help="run only these graphs (file stems, e.g. intel MIT)")
+    add_graph_arguments(parser)
     parser.add_argument("--timeout", type=float, default=900.0, metavar="S",
                         help="limit per solver run in seconds (default 900)")
     parser.add_argument("--output-dir", type=Path, default=None,
                         help="keep the solved files and reports here (default: a temp dir)")
-    parser.add_argument("--results", type=Path, default=DEFAULT_RESULTS,
-                        help=f"markdown file to update (default {DEFAULT_RESULTS})")
     args = parser.parse_args(argv)
-    return run(args.data, args.graphs, args.timeout, args.output_dir, args.results)
+    return run(args.data, args.graphs, args.timeout, args.output_dir, results_path(args))
 
 
 if __name__ == "__main__":

@@ -32,16 +32,14 @@ from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
-from results_md import command, replace_section, revision
+from results_md import add_graph_arguments, command, publish, results_path, revision, select_graphs
 
 from h2o_slam import spd
 from h2o_slam.g2o import read_g2o
 from h2o_slam.lago import lago
 from h2o_slam.modes import build_solver
 
-REPO = Path(__file__).resolve().parent.parent
-DEFAULT_DATA = REPO.parent / "shared" / "data" / "posegraphs"
-DEFAULT_RESULTS = REPO / "bench" / "RESULTS.md"
+REPO = Path(__file__).resolve().parents[1]
 SECTION = "## Sparse factorizations (bench/spd.py)"
 
 
@@ -125,31 +123,17 @@ def render(rows: list[tuple[str, str, int, int, dict]], repeats: int) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, default=DEFAULT_DATA,
-                        help=f"folder of .g2o graphs (default {DEFAULT_DATA})")
-    parser.add_argument("--graphs", nargs="+", metavar="NAME",
-                        help="run only these graphs (file stems)")
+    add_graph_arguments(parser)
     parser.add_argument("--repeats", type=int, default=7,
                         help="timed runs per backend (median; default 7)")
-    parser.add_argument("--results", type=Path, default=DEFAULT_RESULTS,
-                        help=f"markdown file to update (default {DEFAULT_RESULTS})")
-    parser.add_argument("--no-results", action="store_true",
-                        help="print the table only; do not touch the results file")
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be ≥ 1")
-    if not args.data.is_dir():
-        print(f"spd.py: data folder {args.data} is missing; nothing to benchmark.")
-        return 0
-    paths = sorted(args.data.glob("*.g2o"))
-    if args.graphs:
-        paths = [p for p in paths if p.stem in set(args.graphs)]
+    paths = select_graphs("spd.py", args.data, args.graphs)
+    if isinstance(paths, int):
+        return paths
     rows = [row for p in paths for row in bench_graph(p, args.repeats)]
-    section = render(rows, args.repeats)
-    print(section)
-    if not args.no_results:
-        replace_section(args.results, SECTION, section)
-        print(f"written to {args.results}", file=sys.stderr)
+    publish(render(rows, args.repeats), results_path(args), SECTION)
     return 0
 
 
