@@ -8,7 +8,8 @@ is reported and the script exits 0), two matrices:
 
 - LAGO's phase-3 matrix ``Ω_x`` (planar graphs; ``lago(graph).information``), solved once:
   what LAGO pays (ordering, symbolic analysis and numeric factorization, then the solve);
-- exact mode's ``H = JᵀJ`` at the tree initialization (``H2OSolver.normal_equations``),
+- exact mode's ``H = JᵀJ`` at the tree initialization
+  (``h2o_slam.exact.ExactSystem.normal_equations``),
   refactorized with the kept symbolic analysis: what each Gauss–Newton iteration pays.
 
 Every backend of :mod:`h2o_slam.spd` that is installed is timed, fresh and (for exact
@@ -35,6 +36,7 @@ import scipy.sparse as sp
 from results_md import add_graph_arguments, command, publish, results_path, revision, select_graphs
 
 from h2o_slam import spd
+from h2o_slam.exact import ExactSystem
 from h2o_slam.g2o import read_g2o
 from h2o_slam.lago import lago
 from h2o_slam.modes import build_solver
@@ -79,7 +81,7 @@ def bench_graph(path: Path, repeats: int) -> list[tuple[str, str, int, int, dict
         rows.append((path.stem, "LAGO Ω_x", omega.shape[0], omega.nnz,
                      time_matrix(omega, repeats)))
     solver, _ = build_solver(graph)
-    H, _, _ = solver.normal_equations()
+    H, _, _ = ExactSystem(solver).normal_equations()
     rows.append((path.stem, "exact JᵀJ", H.shape[0], H.nnz, time_matrix(H, repeats)))
     print(f"spd.py: {path.stem} done", file=sys.stderr, flush=True)
     return rows

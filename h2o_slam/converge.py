@@ -4,7 +4,7 @@ H₂O's single-edge updates give a new edge its first correction within a callba
 but old nodes stiffen in ``B`` and the updates settle at their own fixed point, not at the
 optimum (thesis 3.5). As Cartographer and ORB-SLAM run their global optimization beside the
 real-time front end, this module solves a *snapshot* of the graph exactly (damped
-Gauss–Newton with a sparse factorization, :func:`converge_exact`, the same code as
+Gauss–Newton with a sparse factorization, :func:`~h2o_slam.exact.converge_exact`, the same code as
 ``--mode exact``) and merges the answer back into the live tree in budgeted slices:
 
 * the snapshot is the tree (parents and local transforms) and the edges so far; the
@@ -43,9 +43,10 @@ from typing import Any
 import numpy as np
 
 from h2o_slam import geometry as geo
+from h2o_slam.exact import converge_exact
 from h2o_slam.geometry import Array
 from h2o_slam.graph import EARTH
-from h2o_slam.solver import H2OSolver, SolverConfig, WorldLinearization
+from h2o_slam.solver import H2OSolver, SolverConfig
 from h2o_slam.timing import CostModel
 from h2o_slam.tree import PoseTree
 
@@ -98,51 +99,6 @@ class Solution:
     iterations: int
     converged: bool
     error: str = ""
-
-
-def damped_step(solver: H2OSolver, lin: WorldLinearization, damping: float
-                ) -> tuple[float | None, WorldLinearization]:
-    """Take one exact Gauss–Newton step from the linearization ``lin`` (at the solver's
-    estimate), raising the Levenberg damping until χ² does not rise.
-
-    Returns the damping to use next (None when no step helps) and the linearization at the
-    new estimate (``lin`` when none): its χ² scores the step, its system gives the next one.
-    """
-    saved_R = solver.tree.R.copy()
-    saved_t = solver.tree.t.copy()
-    for _ in range(12):
-        x, nodes = solver.exact_step(damping, lin)
-        solver.apply_step(nodes, x)
-        new = solver.linearize_world()
-        if np.isfinite(new.chi2) and new.chi2 <= lin.chi2:
-            return damping / 10.0 if damping > 1e-9 else 0.0, new
-        solver.tree.R[:] = saved_R
-        solver.tree.t[:] = saved_t
-        damping = max(1e-6, damping * 10.0)
-    return None, lin
-
-
-def converge_exact(solver: H2OSolver, iterations: int) -> tuple[list[float], bool]:
-    """Damped Gauss–Newton on all of the solver's edges until the relative χ² decrease falls
-    to ``config.exact_tolerance`` or no step helps (converged), or ``iterations`` run out.
-
-    Returns the χ² after each iteration (the first entry is the start) and whether it
-    converged.
-    """
-    tol = solver.config.exact_tolerance
-    lin = solver.linearize_world()
-    history = [lin.chi2]
-    damping = 0.0
-    for _ in range(iterations):
-        current = history[-1]
-        damping_next, lin = damped_step(solver, lin, damping)
-        if damping_next is None:
-            return history, True
-        damping = damping_next
-        history.append(lin.chi2)
-        if current - lin.chi2 <= tol * max(current, 1e-300):
-            return history, True
-    return history, False
 
 
 class ExactProblem:

@@ -22,7 +22,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from h2o_slam import geometry as geo
-from h2o_slam.converge import ConvergeState, converge_exact
+from h2o_slam.converge import ConvergeState
+from h2o_slam.exact import converge_exact
 from h2o_slam.geometry import Array
 from h2o_slam.graph import EARTH, EdgeKind, PoseGraph, chi2, edge_chi2
 from h2o_slam.online import OnlineConfig, OnlineH2O

@@ -8,6 +8,7 @@ import pytest
 from graphs import random_graph
 
 from h2o_slam import geometry as geo
+from h2o_slam.exact import ExactSystem
 from h2o_slam.graph import EARTH, EdgeKind, chi2, edge_errors
 from h2o_slam.hybrid import NULL_TOLERANCE
 from h2o_slam.jacobians import endpoint_jacobians
@@ -183,7 +184,7 @@ def test_batch_of_all_edges_is_the_gauss_newton_step(planar):
     solver, _ = build_solver(graph, UNCAPPED)
     expected, free = _gauss_newton_reference(solver, graph)
 
-    x_world, nodes = solver.exact_step()
+    x_world, nodes = ExactSystem(solver).step()
     assert np.array_equal(nodes, free)
     assert np.allclose(x_world, expected, rtol=1e-5, atol=1e-6)
 
@@ -199,19 +200,19 @@ def test_world_linearization_scores_the_estimate_as_the_graph_chi2(planar):
     # graph's χ², the metric every report and benchmark uses.
     graph = random_graph(8, planar, n=11, loops=6, gps=3, orientation=1)
     solver, _ = build_solver(graph, UNCAPPED)
-    step, nodes = solver.exact_step()
+    step, nodes = ExactSystem(solver).step()
     solver.apply_step(nodes, 0.5 * step)
     R, t = solver.world_poses()
     expected = chi2(graph, R, t)
     assert expected > 1e-3
-    assert solver.linearize_world().chi2 == pytest.approx(expected, rel=1e-10)
+    assert ExactSystem(solver).linearize().chi2 == pytest.approx(expected, rel=1e-10)
 
 
 def test_batch_with_gps_edges_moves_the_subtree_top():
     graph = random_graph(4, False, n=7, loops=2, gps=4)
     solver, _ = build_solver(graph, UNCAPPED)
     expected, _ = _gauss_newton_reference_all(solver, graph)
-    x_world, nodes = solver.exact_step()
+    x_world, nodes = ExactSystem(solver).step()
     assert 0 in nodes.tolist() or solver.tree.parent[0] != EARTH
     assert np.allclose(x_world, expected, rtol=1e-5, atol=1e-6)
 
@@ -223,16 +224,16 @@ def test_exact_system_reused_across_steps_gives_the_fresh_step(planar):
     scaled by 1 + damping."""
     graph = random_graph(31, planar, n=12, loops=6, gps=2, orientation=1)
     solver, _ = build_solver(graph, UNCAPPED)
+    exact = ExactSystem(solver)
     for damping in (0.0, 1e-3, 0.0):
-        step, nodes = solver.exact_step(damping)
+        step, nodes = exact.step(damping)
         solver.apply_step(nodes, step)  # the kept system moves on
-        kept = solver.exact_step(damping)
-        H, g, free = solver.normal_equations()
-        solver._world = None  # build a fresh system at the same estimate
-        fresh = solver.exact_step(damping)
+        kept = exact.step(damping)
+        H, g, free = exact.normal_equations()
+        fresh = ExactSystem(solver).step(damping)  # a system built at the same estimate
         assert np.array_equal(kept[1], fresh[1]) and np.array_equal(free, fresh[1])
         np.testing.assert_allclose(kept[0], fresh[0], rtol=1e-12, atol=1e-12)
-        system, J, r = solver._world_system(*solver.world_poses())
+        system, J, r = exact._system(*solver.world_poses())
         dense = np.zeros((len(r) * solver.p, len(free) * solver.p))
         col = np.full(solver.num_nodes + 1, -1)
         col[free] = np.arange(len(free))
@@ -378,7 +379,7 @@ def test_exact_steps_do_not_need_the_regularizer(planar):
     bare = H2OSolver.from_graph(graph, parents, UNCAPPED, regularizer=False)
     assert not np.any(bare.B[: bare.num_nodes]) and bare.contribution_size(0) == 0
     for solver in (full, bare):
-        step, nodes = solver.exact_step()
+        step, nodes = ExactSystem(solver).step()
         solver.apply_step(nodes, step)
     np.testing.assert_array_equal(bare.world_poses()[1], full.world_poses()[1])
     bare.relax(graph.num_edges - 1)  # an edge without a contribution yet relaxes as usual
