@@ -12,12 +12,10 @@ campaigns of the same strategies.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import pytest
-import rclpy
 from hypothesis import HealthCheck, given, settings
 from nav_msgs.msg import Odometry
 from node_fuzz import (
@@ -40,14 +38,6 @@ from h2o_slam.errors import InputError
 FUZZ = dict(deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
                                        HealthCheck.function_scoped_fixture])
-
-
-@pytest.fixture(scope="module")
-def context() -> Iterator[Context]:
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.shutdown(context=ctx)
 
 
 def assert_clean(driver: NodeDriver) -> None:

@@ -179,16 +179,26 @@ DAMAGED: dict[str, tuple[str, Callable[[Path, Path], Path], str]] = {
 # leaves no folder and no summary: test_cli_errors.py.
 
 
+def replay_damaged(name: str, bags: dict[str, Path], tmp_path: Path,
+                   capsys: pytest.CaptureFixture[str], *flags: str
+                   ) -> tuple[Path, Path, int, list[str]]:
+    """Damage a recorded bag as ``DAMAGED[name]`` says and replay it quietly:
+    ``(bag, output folder, exit code, stderr lines)``."""
+    storage, damage, _ = DAMAGED[name]
+    bag = damage(bags[storage], tmp_path / "bag")
+    out = tmp_path / "out"
+    code, err = run([str(bag), "--output", str(out), "--quiet", *flags], capsys)
+    return bag, out, code, err
+
+
 @pytest.mark.parametrize("name", sorted(DAMAGED))
 def test_a_damaged_bag_is_one_line_exit_1_and_a_summary(
         name: str, bags: dict[str, Path], tmp_path: Path,
         capsys: pytest.CaptureFixture[str]) -> None:
     import re
 
-    storage, damage, reason = DAMAGED[name]
-    bag = damage(bags[storage], tmp_path / "bag")
-    out = tmp_path / "out"
-    code, err = run([str(bag), "--output", str(out), "--quiet"], capsys)
+    reason = DAMAGED[name][2]
+    bag, out, code, err = replay_damaged(name, bags, tmp_path, capsys)
     assert code == 1 and len(err) == 1, err
     assert err[0].startswith(f"h2o-replay: {bag}: ") and re.search(reason, err[0]), err
     s = summary(out)  # every failure writes the summary
@@ -200,10 +210,7 @@ def test_a_damaged_bag_is_one_line_exit_1_and_a_summary(
 def test_salvage_accepts_a_partial_replay_and_says_so(
         name: str, bags: dict[str, Path], tmp_path: Path,
         capsys: pytest.CaptureFixture[str]) -> None:
-    storage, damage, _ = DAMAGED[name]
-    bag = damage(bags[storage], tmp_path / "bag")
-    out = tmp_path / "out"
-    code, err = run([str(bag), "--output", str(out), "--quiet", "--salvage"], capsys)
+    _, out, code, err = replay_damaged(name, bags, tmp_path, capsys, "--salvage")
     s = summary(out)
     assert code == 0 and s["salvage"] and not s["complete"]
     assert len(err) == len(s["problems"]) >= 1

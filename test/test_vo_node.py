@@ -21,7 +21,6 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.context import Context
@@ -45,14 +44,6 @@ REPO = Path(__file__).resolve().parents[1]
 TURN = (math.pi / 2) / 3.0
 PITCH = 0.03  # the simulated drives' camera pitch
 WAIT_S = 20.0  # generous: the machine is shared with benchmarks
-
-
-@pytest.fixture(scope="module")
-def context() -> Iterator[Context]:
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.shutdown(context=ctx)
 
 
 def _diag_values(status: Any) -> dict[str, str]:
