@@ -229,6 +229,13 @@ def _report(parts: list[str], found: dict[str, dict[str, Outcome]], missing: lis
             for k, v in o.items() if k != "best"))
     out.append("Final χ² relative to the best any solver reached from the same start:\n\n"
                + "\n".join(lines) + "\n")
+    out.append(
+        "Read by eye from the figures of this run (seed 0): after 10 passes H₂O's offline map "
+        "of sphere2500 already has the sphere's shape (its χ² is still 7× the best: small "
+        "residual twists), city10000's grid is recovered (still sheared after 10 passes, "
+        "nearly square after 100), while manhattan keeps a folded "
+        "region (lower right) even after 100 passes — a local minimum the stochastic passes "
+        "do not leave, which the exact solve from the same start does.\n")
 
     def within(o: dict[str, Outcome], key: str) -> bool:
         v = o.get(key)
@@ -236,10 +243,14 @@ def _report(parts: list[str], found: dict[str, dict[str, Outcome]], missing: lis
 
     stochastic = all(within(o, "offline long") or within(o, "offline") for o in found.values())
     exact = all(within(o, "exact") for o in found.values())
-    lm_bad = [n for n, o in found.items() if not within(o, "LM")]
-    isam_bad = [n for n, o in found.items() if not within(o, "iSAM2")]
-    peers = (f"GTSAM LM ends above 2× the best on {', '.join(lm_bad) or 'none'}, iSAM2 fails "
-             f"or ends above it on {', '.join(isam_bad) or 'none'}")
+    def rel(o: dict[str, Outcome], key: str) -> str:
+        v = o[key]
+        return (f"{num(v.chi2 / o['best'].chi2, '.3g')}×" if v.status.startswith("ok")
+                else v.status.split(":")[0])
+
+    peers = "; ".join(f"{n}: LM {rel(o, 'LM')}, iSAM2 {rel(o, 'iSAM2')}"
+                      for n, o in found.items())
+    peers = f"GTSAM from the same start — {peers}"
     if stochastic:
         out.append(verdict("reproduced in shape",
                            "H₂O's offline passes recover every noisy map to within 2× the best "
