@@ -489,7 +489,7 @@ Protocol and its differences from the paper's:
   file's estimate (odometry for CSAIL and M3500, which have no vertices), stopping at a
   relative χ² decrease of 1e-10 with Levenberg damping when χ² would rise (the paper's GN
   stops when the correction's norm is below 0.1); GTSAM's Gauss–Newton from the same start
-  is beside it. g2o: the `g2opy` wheel (g2o 2.3.0, a 2025 release, not the 2011 code),
+  is beside it. g2o: the `g2opy` wheel (2.3.0: current g2o code, not the 2011 release),
   Gauss–Newton, 5 iterations, Eigen's sparse Cholesky. TORO: `h2o_slam/toro.py` (a
   colleague's implementation) when present.
 - **Times** are wall seconds in one Python process on this machine (2 cores): LAGO the
