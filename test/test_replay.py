@@ -12,6 +12,7 @@ import pytest
 
 import msg_adapters as ma
 from h2o_slam.cli import replay as replay_cli
+from h2o_slam.cli.replay_demo import PLOTS
 from h2o_slam.cli.replay_demo import run as run_demo
 from h2o_slam.replay import ReplayOptions, replay
 from h2o_slam.replay_io import BagReader, write_bag
@@ -22,6 +23,7 @@ from hybrid_vo.world_messages import drive_messages
 pytestmark = pytest.mark.slow
 
 TURN = (math.pi / 2) / 3.0
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
 def short_drive() -> world.Drive:
@@ -118,6 +120,10 @@ def test_demo_h2o_with_gps_beats_hybrid_vo_which_beats_wheels(tmp_path: Path) ->
     assert ate["H2O with GPS"] < ate["hybrid VO"] < ate["wheel odometry"]
     assert (tmp_path / "replay" / "ground_truth.tum").is_file()
     assert (tmp_path / "input").is_dir() and (tmp_path / "no_gps" / "h2o.tum").is_file()
+    for folder in (tmp_path, tmp_path / "replay", tmp_path / "no_gps"):
+        for name in PLOTS:  # the demo's own three, of both runs; each replay's three
+            blob = (folder / name).read_bytes()
+            assert blob[:8] == PNG_MAGIC and len(blob) > 20_000, folder / name
 
 
 def test_realtime_publishes_the_bag_on_the_ros_graph(bags: dict[str, Path]) -> None:

@@ -24,6 +24,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from h2o_slam.cli.common import (
     EXIT_INPUT,
     OneLineParser,
@@ -34,8 +36,11 @@ from h2o_slam.cli.common import (
     usage_error,
 )
 from h2o_slam.errors import H2OError
-from h2o_slam.replay import ReplayOptions, replay
+from h2o_slam.g2o import read_g2o
+from h2o_slam.graph import EdgeKind
+from h2o_slam.replay import Replay, ReplayOptions
 from h2o_slam.replay_io import Storage, write_bag
+from h2o_slam.replay_outputs import plot_callback_times, plot_chi2, plot_trajectories, read_tum
 from hybrid_vo import world
 from hybrid_vo.world_messages import drive_messages
 
@@ -51,6 +56,14 @@ DESCRIPTION = (
     "trajectories with replay/ground_truth.tum, graph, plots and summary.json) and the "
     "replay without GPS in no_gps/."
 )
+
+#: The pictures ``h2o-demo`` writes into DIR, both runs together (``make doc-images``
+#: copies them into doc/images for the README).
+PLOTS = ("trajectories.png", "chi2.png", "callback_times.png")
+
+#: Bag seconds between χ² samples (and graph outputs) of the demo's replays: the drive is
+#: short, so finer than h2o-replay's default.
+GRAPH_PERIOD_S = 1.0
 
 #: Where hybrid_vo.world puts the origin of its ENU frame (lat, lon, alt): the demo's
 #: surveyed datum, so that the map frame and the ground truth share their origin.
@@ -78,15 +91,41 @@ def run(output: Path, seed: int, laps: int, storage: Storage, progress: bool) ->
     write_bag(bag, drive_messages(drive), storage)
     record_s = time.perf_counter() - start
     params = {"datum": WORLD_DATUM}
-    with_gps = replay(ReplayOptions(bag=bag, output=output / "replay", h2o_params=params,
-                                    progress=progress))
-    without = replay(ReplayOptions(bag=bag, output=output / "no_gps", use_gps=False,
-                                   h2o_params=params, progress=progress))
+    runs = {name: Replay(ReplayOptions(bag=bag, output=output / folder, use_gps=gps,
+                                       h2o_params=params, progress=progress,
+                                       graph_period_s=GRAPH_PERIOD_S))
+            for name, folder, gps in (("with GPS", "replay", True),
+                                      ("without GPS", "no_gps", False))}
+    with_gps, without = (r.run() for r in runs.values())
+    write_plots(output, runs)
     acc, acc_no = with_gps["accuracy"], without["accuracy"]
     rows = [("wheel odometry", acc.get("wheel")), ("hybrid VO", acc.get("hybrid_vo")),
             ("H2O without GPS", acc_no.get("h2o")), ("H2O with GPS", acc.get("h2o"))]
     return {"rows": rows, "record_s": record_s, "frames": len(drive),
             "summaries": {"with_gps": with_gps, "without_gps": without}}
+
+
+def write_plots(output: Path, runs: dict[str, Replay]) -> None:
+    """The demo's three pictures in ``output`` (:data:`PLOTS`): the table's trajectories
+    with the GPS fixes and the ground truth, χ² of both runs, and the callback times of the
+    run with GPS."""
+    with_gps, without = runs["with GPS"].options.output, runs["without GPS"].options.output
+
+    tracks = {label: read_tum(path) for label, path in (
+        ("wheel odometry", with_gps / "wheel.tum"), ("hybrid VO", with_gps / "hybrid_vo.tum"),
+        ("H₂O without GPS", without / "h2o.tum"), ("H₂O with GPS", with_gps / "h2o.tum"),
+        ("ground truth", with_gps / "ground_truth.tum"))}
+    graph = read_g2o(with_gps / "graph.g2o")
+    plot_trajectories(output / PLOTS[0], {k: v[1] for k, v in tracks.items()},
+                      gps_enu=graph.meas_t[graph.kind == EdgeKind.POSITION],
+                      title="h2o-demo: the simulated drive (final graphs)",
+                      stamps_ns={k: v[0] for k, v in tracks.items()})
+    chi2 = {f"H₂O {name}": np.asarray(run.chi2_trace) for name, run in runs.items()
+            if run.chi2_trace}
+    plot_chi2(output / PLOTS[1], {k: (v[:, 0], v[:, 1]) for k, v in chi2.items()},
+              title="h2o-demo: χ² of the graph over bag time")
+    plot_callback_times(output / PLOTS[2], runs["with GPS"].callback_panels(),
+                        title="h2o-demo: time per callback (replay with GPS, one process)")
 
 
 def table(rows: list[tuple[str, dict[str, float] | None]]) -> str:
@@ -130,7 +169,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{summary['speed_x_realtime']:.1f}x real time")
     print(table(result["rows"]))
     print(f"everything is in {output} (input bag in input/, replay outputs in replay/ and "
-          "no_gps/; ground truth in replay/ground_truth.tum)")
+          "no_gps/; ground truth in replay/ground_truth.tum; plots "
+          f"{', '.join(PLOTS)})")
     return 0
 
 
