@@ -18,10 +18,12 @@ divided by the number of constraints.
 
 from __future__ import annotations
 
+import datetime
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from results_md import command
 
 from h2o_slam.covariance_variants import with_variant
 from h2o_slam.g2o import read_g2o
@@ -405,6 +407,11 @@ Protocol and its differences from the paper's:
   with GPS stands in."""
 
 
+def run_line(ctx: Context) -> str:
+    """When and how this section was made (the file's header may be older)."""
+    now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    return f"Made {now} by `{command(ctx.repo)}`" + (", quick subset." if ctx.quick else ".")
+
 def run(ctx: Context) -> str:
     quick = ctx.quick
     passes = 5 if quick else 20
@@ -424,7 +431,8 @@ def run(ctx: Context) -> str:
     if not results:
         return "No graph found in the data folder; nothing was run.\n"
     city = "" if quick else "; city10000 is a larger loop-rich city"
-    parts = [PROTOCOL.format(passes=passes, toro=toro_iterations, city=city), ""]
+    parts = [run_line(ctx), "", PROTOCOL.format(passes=passes, toro=toro_iterations, city=city),
+             ""]
     if missing:
         parts.append("Missing here: " + ", ".join(missing) + ".\n")
     if quick:
