@@ -155,6 +155,8 @@ class CircularVOConfig:
         fast_threshold: ORB's FAST threshold (grey levels).
         stereo_max_dy_px: largest row difference of a stereo match (rectified pair).
         max_disparity_frac: largest disparity as a fraction of the image width.
+        min_disparity_px: points with less disparity are not triangulated (their depth is
+            mostly noise).
         match_radius_px: search radius across time around the predicted position (VISO2:
             200 px).
         max_hamming: largest descriptor distance of a match (bits of 256).
@@ -170,6 +172,7 @@ class CircularVOConfig:
     pyramid_levels: int = 2
     stereo_max_dy_px: float = 2.0
     max_disparity_frac: float = 0.25
+    min_disparity_px: float = 0.05
     match_radius_px: float = 200.0
     max_hamming: int = 64
     bucket_px: int = 50
@@ -471,7 +474,7 @@ class CircularStereoVO:
         a = anchor[:, 0].astype(np.float64)
         rp, lc, rc = obs
         disp_p = a[:, 0] - rp[:, 0]
-        good &= (np.abs(a[:, 1] - rp[:, 1]) < 1.0) & (disp_p > 0.05)
+        good &= (np.abs(a[:, 1] - rp[:, 1]) < 1.0) & (disp_p > cfg.min_disparity_px)
         good &= (np.abs(lc[:, 1] - rc[:, 1]) < 1.0) & (lc[:, 0] - rc[:, 0] > 0.0)
         keep = np.flatnonzero(good)
         keep = keep[bucket(a[keep], cfg.bucket_px, cfg.per_bucket)]
