@@ -21,12 +21,13 @@ export FASTRTPS_DEFAULT_PROFILES_FILE := $(CURDIR)/config/fastdds_localhost.xml
 export FASTDDS_DEFAULT_PROFILES_FILE := $(CURDIR)/config/fastdds_localhost.xml
 unexport ROS_LOCALHOST_ONLY ROS_AUTOMATIC_DISCOVERY_RANGE ROS_STATIC_PEERS
 
-.PHONY: help venv demo test bench clean
+.PHONY: help venv demo test bench doc-images clean
 
 help:
 	@echo "make demo   h2o-demo: simulated drive -> bag -> replay through both nodes -> ATE table"
 	@echo "make test   ruff, mypy and pytest (what CI runs)"
 	@echo "make bench  benchmarks against reference solvers (installs requirements-bench.txt)"
+	@echo "make doc-images  copy the plots of the last make demo (out/demo/*.png) into doc/images/"
 	@echo "make venv   create/update .venv (reruns when a requirements file, setup.py or tools/tf2_msgs changes)"
 	@echo "make clean  remove build/, install/, log/ and out/"
 
@@ -72,6 +73,16 @@ bench: $(BENCH_STAMP)
 	$(PY) bench/solvers.py
 	$(PY) bench/lago.py
 	$(PY) bench/online.py
+
+# The README's pictures: the three plots h2o-demo draws of both runs (h2o_slam.cli.replay_demo.PLOTS).
+DOC_IMAGES := trajectories.png chi2.png callback_times.png
+
+doc-images:
+	@for f in $(DOC_IMAGES); do \
+	  test -f $(OUT)/$$f || { echo "make doc-images: no $(OUT)/$$f; run make demo first" >&2; exit 1; }; \
+	done
+	mkdir -p doc/images
+	cd $(OUT) && cp $(DOC_IMAGES) $(CURDIR)/doc/images/
 
 clean:
 	rm -rf build install log out

@@ -1,0 +1,131 @@
+"""The front page and the doc/ pages against the code they describe: parameter tables
+against the parameters the nodes declare, the test command against CI, links and pictures
+against the files they name."""
+
+from __future__ import annotations
+
+import re
+import unicodedata
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from h2o_slam.cli.replay_demo import PLOTS
+from h2o_slam.h2o_node import PARAMETERS as H2O_PARAMETERS
+from h2o_slam.h2o_node import RUNTIME
+from hybrid_vo.vo_node import PARAMETERS as VO_PARAMETERS
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "doc").glob("*.md"))]
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+RUN_TIME = "**Run time.**"
+
+
+def fmt_default(value: Any) -> str:
+    """A default as the parameter tables write it."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str | list):
+        return f"`{value}`"
+    return str(value)
+
+
+def fmt_range(low: float | None, high: float | None) -> str:
+    """A range as the parameter tables write it (empty for none)."""
+    return "" if low is None or high is None else f"{low:g}–{high:g}"
+
+
+def section(text: str, heading: str) -> str:
+    """The text under ``heading`` up to the next heading of its level or above."""
+    level = len(heading) - len(heading.lstrip("#"))
+    start = text.index(heading + "\n")
+    end = re.search(rf"^#{{1,{level}}} ", text[start + len(heading):], flags=re.M)
+    return text[start:start + len(heading) + (end.start() if end else len(text))]
+
+
+def parameter_rows(text: str) -> dict[str, tuple[str, str, str]]:
+    """The rows of the ``| parameter | default | range | meaning |`` table in ``text``:
+    name → (default, range, meaning)."""
+    lines = text.splitlines()
+    start = lines.index("| parameter | default | range | meaning |") + 2
+    rows = {}
+    for line in lines[start:]:
+        if not line.startswith("|"):
+            break
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        rows[cells[0].strip("`")] = (cells[1], cells[2], cells[3])
+    return rows
+
+
+def slug(heading: str) -> str:
+    """GitHub's anchor of a heading: lower case, punctuation dropped, spaces to hyphens."""
+    text = heading.strip().lower()
+    kept = "".join(c for c in text if c in " -_" or unicodedata.category(c)[0] in "LMN")
+    return kept.replace(" ", "-")
+
+
+def anchors(path: Path) -> set[str]:
+    text = re.sub(r"^```.*?^```", "", path.read_text(), flags=re.M | re.S)
+    return {slug(m[1]) for m in re.finditer(r"^#+ (.+)$", text, flags=re.M)}
+
+
+def test_h2o_node_parameter_table_is_what_the_node_declares() -> None:
+    rows = parameter_rows(section((ROOT / "doc/nodes.md").read_text(), "## `h2o_node`"))
+    assert list(rows) == [name for name, *_ in H2O_PARAMETERS]
+    for name, default, _, bounds in H2O_PARAMETERS:
+        shown, limits, meaning = rows[name]
+        assert shown == fmt_default(default), name
+        assert limits == (fmt_range(*bounds) if bounds else ""), name
+        assert meaning.endswith(RUN_TIME) == (name in RUNTIME), name
+
+
+def test_hybrid_vo_node_parameter_table_is_what_the_node_declares() -> None:
+    rows = parameter_rows(section((ROOT / "doc/nodes.md").read_text(), "## `hybrid_vo_node`"))
+    assert list(rows) == [spec.name for spec in VO_PARAMETERS]
+    for spec in VO_PARAMETERS:
+        shown, limits, _ = rows[spec.name]
+        assert shown == fmt_default(spec.default), spec.name
+        assert limits == fmt_range(spec.low, spec.high), spec.name
+
+
+def test_the_front_pages_test_command_is_what_ci_runs() -> None:
+    readme = (ROOT / "README.md").read_text()
+    commands = re.findall(r"^(make \w+)\s+#", readme, flags=re.M)
+    assert commands[:2] == ["make demo", "make test"]
+    ci = (ROOT / ".ci/run").read_text()
+    assert re.search(r"^make test\b", ci, flags=re.M)
+    assert re.search(r"^test:", (ROOT / "Makefile").read_text(), flags=re.M)
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
+def test_links_name_files_and_headings_that_exist(page: Path) -> None:
+    text = re.sub(r"^```.*?^```", "", page.read_text(), flags=re.M | re.S)
+    for target in re.findall(r"\]\(([^)\s]+)\)", text):
+        if re.match(r"[a-z]+:", target):
+            continue  # a web address: not checked offline
+        file, _, anchor = target.partition("#")
+        path = (page.parent / file).resolve() if file else page
+        assert path.exists(), f"{page.name}: {target}"
+        if anchor and path.suffix == ".md":
+            assert anchor in anchors(path), f"{page.name}: {target}"
+
+
+def test_the_front_page_shows_the_demos_plots_and_make_copies_them() -> None:
+    readme = (ROOT / "README.md").read_text()
+    shown = re.findall(r"!\[[^\]]*\]\(doc/images/([\w.]+)\)", readme)
+    assert sorted(shown) == sorted(PLOTS)
+    for name in PLOTS:
+        blob = (ROOT / "doc/images" / name).read_bytes()
+        assert blob[:8] == PNG_MAGIC and len(blob) > 10_000, name
+    makefile = (ROOT / "Makefile").read_text()
+    listed = re.search(r"^DOC_IMAGES := (.+)$", makefile, flags=re.M)
+    assert listed is not None and sorted(listed[1].split()) == sorted(PLOTS)
+    assert re.search(r"^doc-images:", makefile, flags=re.M)
+
+
+def test_the_front_page_is_short_and_every_doc_page_is_linked_from_it() -> None:
+    readme = (ROOT / "README.md").read_text()
+    assert len(readme.splitlines()) < 200
+    for page in (ROOT / "doc").glob("*.md"):
+        assert f"(doc/{page.name})" in readme, page.name
