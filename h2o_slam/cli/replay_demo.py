@@ -7,8 +7,8 @@ hallucinated turns, GPS with dropouts, loop closures, ground truth), writes it a
 replays it with ``h2o-replay``'s machinery twice — with and without GPS — and prints ATE
 and final error of wheel odometry, hybrid VO, H₂O without GPS and H₂O with GPS. DIR
 (a new temporary folder when not given) receives the input bag (``input/``), everything
-the replay with GPS writes (``replay/``, ``ground_truth.tum`` among it) and the replay
-without GPS (``no_gps/``).
+the replay with GPS writes (``replay/``, ``ground_truth.tum`` among it), the replay
+without GPS (``no_gps/``), and the three plots of both runs together (:data:`PLOTS`).
 
 Exit codes as every command of the package (:mod:`h2o_slam.cli.common`): 2 for the command
 line (an output folder that is a file or not empty), 1 when the run fails.
@@ -53,8 +53,9 @@ DESCRIPTION = (
     "hybrid_vo_node and h2o_node twice (with and without GPS), and print the ATE and final "
     "error of wheel odometry, hybrid VO, H2O without GPS and H2O with GPS. The output folder "
     "receives the input bag in input/, the replay with GPS in replay/ (its outputs bag, TUM "
-    "trajectories with replay/ground_truth.tum, graph, plots and summary.json) and the "
-    "replay without GPS in no_gps/."
+    "trajectories with replay/ground_truth.tum, graph, plots and summary.json), the "
+    "replay without GPS in no_gps/, and plots of both runs: trajectories.png, chi2.png and "
+    "callback_times.png."
 )
 
 #: The pictures ``h2o-demo`` writes into DIR, both runs together (``make doc-images``
