@@ -63,10 +63,10 @@ SEGMENTS_M = (5.0, 10.0, 20.0)
 DEFAULT_DRIVES = "straight,loop,slip,cluttered,sharp_turns,spin"
 
 KITTI_NOTE = (
-    "Real images (`--kitti`, `bench/vo_kitti.py`): KITTI stereo, 1241×376 grey, both "
+    "Real images (`--kitti`, `bench/vo_kitti.py`): KITTI stereo, 1226×370 grey, all "
     "odometers on the same frames; the hybrid downsamples to 160 px wide (160×48). KITTI "
     "has no wheel odometry: the \"wheels\" are the true planar travel with the true yaw "
-    "plus 0.004 rad/√m noise (the synthetic default), and in the second row a 0.3 rad turn "
+    "plus 0.004 rad/√m noise (the synthetic default), and in the third row a 0.3 rad turn "
     "the car did not make. d of (2.3) from a 15 m/s top speed (the car drives ~12 m/s). "
     "Errors are against KITTI's ground-truth poses."
 )
