@@ -21,6 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from h2o_slam import geometry as geo
 from h2o_slam.geometry import Array
 from h2o_slam.graph import EARTH
 from h2o_slam.jacobians import endpoint_jacobians
@@ -57,24 +58,44 @@ class ExactSystem:
 
     def step(self, damping: float = 0.0, lin: WorldLinearization | None = None
              ) -> tuple[Array, np.ndarray]:
-        """The Gauss–Newton step of all edges as a local step per node, without applying it.
+        """The Gauss–Newton step of all edges as a local step per node, without applying it:
+        the batch of every edge in the tree's coordinates (what :meth:`H2OSolver.relax_batch`
+        takes, to first order).
 
         ``damping`` adds ``damping · diag(H)`` (Levenberg–Marquardt). ``lin``: the
-        linearization at the current estimate, when the caller has it (a damping retry
-        reuses it).
+        linearization at the current estimate, when the caller has it.
 
         Returns:
             ``(x, nodes)``: the local step ``(len(nodes), p)`` for the nodes that move.
         """
-        solver = self.solver
         lin = self.linearize() if lin is None else lin
-        system = lin.system
+        step = self._world_step(lin, damping)
+        free, dof = lin.system.free, self.solver.dof
+        return self._world_to_local(lin.R, lin.x, step)[:, dof][free], free
+
+    def move(self, lin: WorldLinearization, damping: float = 0.0) -> None:
+        """Take the step from ``lin`` in world coordinates, each pose on its own
+        (``R ← Exp(ω) R``, ``x ← x + δx``), and rebuild the tree's local transforms from the
+        new poses.
+
+        The same step as :meth:`step` to first order, but applied in the tree's coordinates
+        a rotation near the root swings its whole subtree along an arc, not the tangent the
+        linearization saw: from a far start (an odometry chain over 10,000 poses) those
+        steps were refused, the damping rose and 100 iterations ended 860× above the optimum
+        that world-coordinate steps reach in a dozen.
+        """
+        step = self._world_step(lin, damping)
+        R = geo.so3_exp(step[:, 3:]) @ lin.R
+        t = lin.x + step[:, :3]
+        self.solver.tree.set_world_poses(geo.renormalize(R), t)
+
+    def _world_step(self, lin: WorldLinearization, damping: float) -> Array:
+        """The damped Gauss–Newton step ``(δx, ω)`` of every node, ``(n, 6)`` (zero where held)."""
+        solver, system = self.solver, lin.system
         step = np.zeros((solver.num_nodes, 6))
-        free = system.free
-        step[np.ix_(free, solver.dof)] = -system.solve(
-            system.damped(lin.data, damping), lin.g).reshape(len(free), solver.p)
-        local = self._world_to_local(lin.R, lin.x, step)
-        return local[:, solver.dof][free], free
+        step[np.ix_(system.free, solver.dof)] = -system.solve(
+            system.damped(lin.data, damping), lin.g).reshape(len(system.free), solver.p)
+        return step
 
     def normal_equations(self) -> tuple[sp.csc_matrix, Array, np.ndarray]:
         """``(H, g, free)`` at the current estimate: the full symmetric ``H = JᵀJ`` and
@@ -151,8 +172,7 @@ def damped_step(system: ExactSystem, lin: WorldLinearization, damping: float
     saved_R = solver.tree.R.copy()
     saved_t = solver.tree.t.copy()
     for _ in range(12):
-        x, nodes = system.step(damping, lin)
-        solver.apply_step(nodes, x)
+        system.move(lin, damping)
         new = system.linearize()
         if np.isfinite(new.chi2) and new.chi2 <= lin.chi2:
             return damping / 10.0 if damping > 1e-9 else 0.0, new
