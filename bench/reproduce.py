@@ -45,16 +45,22 @@ def run_one(name: str, ctx: Context) -> tuple[str, str]:
     except Exception:  # one broken experiment must not lose the others' results
         body = "Failed:\n\n```\n" + traceback.format_exc() + "```\n"
     elapsed = time.perf_counter() - begin
-    return f"## {module.TITLE}", f"{body.rstrip()}\n\n_Ran in {elapsed:.0f} s._\n"
+    subset = " (quick subset)" if ctx.quick else ""
+    return f"## {module.TITLE}", (f"{body.rstrip()}\n\n_Ran in {elapsed:.0f} s{subset}, {_now()}, "
+                                  f"repo at {revision(REPO)}: `{command(REPO)}`._\n")
 
 
-def header(quick: bool) -> str:
-    now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+def _now() -> str:
+    return datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+
+
+def header() -> str:
     return (
         "# Reproducing the seeds\n\n"
-        f"Command (from the repo root): `{command(REPO)}`\n\n"
-        f"Date: {now}. Machine: {platform.machine()}, Python {platform.python_version()}, "
-        f"repo at {revision(REPO)}{'; quick subset' if quick else ''}.\n\n"
+        "Written by `bench/reproduce.py` (`--quick` for a few-minute subset, `--only NAME` "
+        "to re-run one experiment); each section ends with when, at which revision and by "
+        f"which command it was made. Machine: {platform.machine()}, "
+        f"Python {platform.python_version()}.\n\n"
         "Each section: the seed's numbers and ours side by side, the protocol differences, "
         "figures, and a verdict.\n")
 
@@ -73,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     plots.mkdir(parents=True, exist_ok=True)
     ctx = Context(quick=args.quick, data=args.data, plots=plots, repo=REPO)
     if not args.output.exists() or args.only is None:
-        args.output.write_text(header(args.quick))
+        args.output.write_text(header())
     for name in args.only or EXPERIMENTS:
         heading, body = run_one(name, ctx)
         replace_section(args.output, heading, f"{heading}\n\n{body}")
