@@ -95,3 +95,4 @@ def warm_up() -> None:
         tree = PoseTree.from_parents(solver.tree.parent[: solver.num_nodes],
                                      *solver.world_poses())
         tree.tops()
+        tree.world_pose(tree.n - 1)

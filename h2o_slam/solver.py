@@ -542,12 +542,7 @@ class H2OSolver:
 
     def world_pose(self, node: int) -> tuple[Array, Array]:
         """World pose of one node, composed down its ancestry (O(depth))."""
-        chain = []
-        while node != EARTH:
-            chain.append(node)
-            node = int(self.tree.parent[node])
-        R, t = self.tree.chain_poses(np.array(chain[::-1], dtype=np.int64))
-        return R[-1], t[-1]
+        return self.tree.world_pose(node)
 
     def relative_pose(self, a: int, b: int, path: EdgePath | None = None) -> tuple[Array, Array]:
         """Pose of ``b`` in the frame of ``a`` (``a`` may be :data:`EARTH`), composed along

@@ -195,6 +195,12 @@ class PoseTree:
         """Poses of the chain's nodes in the frame of the first node's parent."""
         return geo.cumulative_compose(self.R[chain], self.t[chain])
 
+    def world_pose(self, node: int) -> tuple[Array, Array]:
+        """World pose of one node, composed down its ancestry (O(depth), compiled)."""
+        R, t = np.empty((3, 3)), np.empty(3)
+        _compose_ancestry(self.parent, self.R, self.t, int(node), R, t)
+        return R, t
+
     def world_poses(self) -> tuple[Array, Array]:
         """World poses of all nodes, composed from the earth down (parents first)."""
         n = self.n
@@ -245,6 +251,23 @@ def _compose_down(parent: np.ndarray, order: np.ndarray, R_loc: Array, t_loc: Ar
             geo.mul3_into(R[p], R_loc[i], R[i])
             t[i] = t[p]
             geo.add_mulv3(R[p], t_loc[i], t[i])
+
+
+@kernel
+def _compose_ancestry(parent: np.ndarray, R_loc: Array, t_loc: Array, node: int, R: Array,
+                      t: Array) -> None:
+    chain = []
+    while node != EARTH:
+        chain.append(node)
+        node = parent[node]
+    R[:] = np.eye(3)
+    t[:] = 0.0
+    tmp = np.empty((3, 3))
+    for k in range(len(chain) - 1, -1, -1):
+        i = chain[k]
+        geo.add_mulv3(R, t_loc[i], t)
+        geo.mul3_into(R, R_loc[i], tmp)
+        R[:] = tmp
 
 
 @kernel

@@ -237,9 +237,15 @@ def test_save_restart_restore_continues_without_loss(harness: Harness, tmp_path:
     assert graph.num_edges > saved_edges
     # The first new keyframe hangs off the last saved one: one connected chain.
     assert {int(a) for a, b in zip(graph.a, graph.b, strict=True) if b == saved} == {saved - 1}
-    # Published poses, so whatever merges of exact solves are still under way count: one
-    # CI run measured 0.51× the wheel error, runs alone 0.3–0.4×.
-    assert final_error(out, loop_drive) < 0.65 * wheel_error(loop_drive)
+    # Judged once the exact solves have caught up (idle steps merge them), on a pose
+    # published then (0.13x the wheel error); mid-merge it depends on timing (0.3-0.67x seen).
+    converger = node.mapper.h2o.converger
+    harness.spin_until(lambda: not converger.busy and converger.outside() == 0, 20.0,
+                       "the exact solution of every edge merged")
+    count = len(out["pose"])
+    node.publish_pose()
+    harness.spin_until(lambda: len(out["pose"]) > count, 5.0, "a pose at the optimum")
+    assert final_error(out, loop_drive) < 0.3 * wheel_error(loop_drive)
 
 
 def test_budget_changes_at_run_time(harness: Harness, slip_drive: world.Drive) -> None:

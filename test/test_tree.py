@@ -46,3 +46,16 @@ def test_the_tree_start_and_the_solver_choose_the_same_tree_edges() -> None:
     assert chosen.tolist() == [0, 1]  # the first forward edge of each node
     assert np.allclose(edge_chi2(start)[chosen], 0.0, atol=1e-20)
     assert edge_chi2(start)[[2, 3]].min() > 1e-3
+
+
+def test_one_world_pose_is_the_composition_of_its_ancestry() -> None:
+    rng = np.random.default_rng(7)
+    n = 300
+    parent = np.array([EARTH] + [int(rng.integers(0, k)) for k in range(1, n)])
+    tree = PoseTree.from_local(parent, geo.so3_exp(rng.normal(size=(n, 3))),
+                               rng.normal(size=(n, 3)))
+    R_all, t_all = tree.world_poses()
+    for node in (0, 1, n // 2, n - 1):
+        R, t = tree.world_pose(node)
+        np.testing.assert_allclose(R, R_all[node], atol=1e-12)
+        np.testing.assert_allclose(t, t_all[node], atol=1e-12)
