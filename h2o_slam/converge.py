@@ -150,12 +150,9 @@ class ExactProblem:
             return tree  # none, or the live side has moved whole subtrees since
         _, R_old, t_old = self._last
         k = min(len(R_old), len(parent))
-        R_w, t_w = tree.R[: tree.n].copy(), tree.t[: tree.n].copy()
+        R_w, t_w = np.empty((tree.n, 3, 3)), np.empty((tree.n, 3))
         R_w[:k], t_w[:k] = R_old[:k], t_old[:k]
-        for level in tree.levels():
-            new = level[level >= k]
-            p = tree.parent[new]
-            R_w[new], t_w[new] = geo.compose(R_w[p], t_w[p], tree.R[new], tree.t[new])
+        tree.compose_below(R_w, t_w, k)
         return PoseTree.from_parents(parent, R_w, t_w)
 
 

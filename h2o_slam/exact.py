@@ -85,9 +85,8 @@ class ExactSystem:
         that world-coordinate steps reach in a dozen.
         """
         step = self._world_step(lin, damping)
-        R = geo.so3_exp(step[:, 3:]) @ lin.R
-        t = lin.x + step[:, :3]
-        self.solver.tree.set_world_poses(geo.renormalize(R), t)
+        # set_world_poses renormalizes the local rotations it derives.
+        self.solver.tree.set_world_poses(geo.so3_exp(step[:, 3:]) @ lin.R, lin.x + step[:, :3])
 
     def _world_step(self, lin: WorldLinearization, damping: float) -> Array:
         """The damped Gauss–Newton step ``(δx, ω)`` of every node, ``(n, 6)`` (zero where held)."""

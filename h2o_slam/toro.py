@@ -72,7 +72,7 @@ from h2o_slam.compiled import kernel
 from h2o_slam.errors import InputError
 from h2o_slam.geometry import Array
 from h2o_slam.graph import EARTH, EdgeKind, PoseGraph, chi2
-from h2o_slam.tree import spanning_parents
+from h2o_slam.tree import compose_down, depths, spanning_parents
 
 
 @dataclass
@@ -101,7 +101,7 @@ class ToroProblem:
     Attributes:
         parent: parent of each node in the spanning tree, :data:`EARTH` for the root(s).
         level: depth of each node (roots 0).
-        down: nodes in breadth-first order (every parent before its children).
+        down: nodes by level (every parent before its children).
         a, b: endpoints of each edge; ``top``: their lowest common ancestor in the tree.
         meas: measurement ``(x, y, θ)`` of each edge, shape ``(M, 3)``.
         info: information of each edge in ``(x, y, θ)``, shape ``(M, 3, 3)``.
@@ -194,7 +194,7 @@ def solve_toro(
 def _tree_and_start(
     graph: PoseGraph, init: str,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Array, Array]:
-    """Parents, levels, breadth-first order and each edge's top on the breadth-first tree,
+    """Parents, levels, the nodes by level and each edge's top on the breadth-first tree,
     and the start (``R, t``) — shared by both variants.
 
     Raises:
@@ -211,29 +211,10 @@ def _tree_and_start(
         from h2o_slam.modes import tree_estimate
 
         R, t = tree_estimate(graph, parent)
-    level, down = _levels(parent)
+    level = depths(parent) - 1  # roots at level 0
+    down = np.argsort(level, kind="stable")  # parents before children
     top = _lowest_common_ancestors(parent, level, graph.a, graph.b)
     return parent, level, down, top, R, t
-
-
-def _levels(parent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Depth of every node (roots 0) and the nodes in breadth-first order."""
-    n = len(parent)
-    level = np.full(n, -1, dtype=np.int64)
-    level[parent == EARTH] = 0
-    frontier = np.flatnonzero(parent == EARTH)
-    down = [frontier]
-    children = np.argsort(np.where(parent == EARTH, -1, parent), kind="stable")
-    sorted_parent = parent[children]
-    while len(frontier):
-        lo = np.searchsorted(sorted_parent, frontier, side="left")
-        hi = np.searchsorted(sorted_parent, frontier, side="right")
-        nxt = np.concatenate([children[s:e] for s, e in zip(lo, hi, strict=True)]) \
-            if len(frontier) else np.zeros(0, np.int64)
-        level[nxt] = level[parent[nxt]] + 1
-        down.append(nxt)
-        frontier = nxt
-    return level, np.concatenate(down).astype(np.int64)
 
 
 @kernel
@@ -383,7 +364,7 @@ class ToroProblem3:
 
     def estimate(self) -> tuple[Array, Array]:
         """World rotations ``(N, 3, 3)`` and positions ``(N, 3)``."""
-        return _all_poses3(self.down, self.parent, self.R, self.t)
+        return compose_down(self.parent, self.down, self.R, self.t)
 
     def iterate(self) -> None:
         """One iteration over every edge (rotations first, then translations, per edge)."""
@@ -397,21 +378,6 @@ class ToroProblem3:
 
 
 @kernel
-def _all_poses3(down: np.ndarray, parent: np.ndarray, R: np.ndarray,
-                t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    GR, Gt = np.empty_like(R), np.empty_like(t)
-    for k in range(len(down)):
-        i = down[k]
-        p = parent[i]
-        if p < 0:
-            GR[i], Gt[i] = R[i], t[i]
-        else:
-            GR[i] = GR[p] @ R[i]
-            Gt[i] = Gt[p] + GR[p] @ t[i]
-    return GR, Gt
-
-
-@kernel
 def _preconditioner3(parent: np.ndarray, a: np.ndarray, b: np.ndarray, top: np.ndarray,
                      w_rot: np.ndarray, w_trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     M_rot, M_trans = np.zeros(len(parent)), np.zeros(len(parent))
@@ -422,39 +388,6 @@ def _preconditioner3(parent: np.ndarray, a: np.ndarray, b: np.ndarray, top: np.n
                 M_trans[n] += w_trans[e]
                 n = parent[n]
     return M_rot, M_trans
-
-
-@kernel
-def _exp3(w: np.ndarray) -> np.ndarray:
-    theta = np.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if theta < 1e-9:
-        return np.eye(3) + K + 0.5 * (K @ K)
-    return (np.eye(3) + (np.sin(theta) / theta) * K
-            + ((1.0 - np.cos(theta)) / theta**2) * (K @ K))
-
-
-@kernel
-def _log3(R: np.ndarray) -> np.ndarray:
-    cos = min(1.0, max(-1.0, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)))
-    vee = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    sin = 0.5 * np.sqrt(vee[0] ** 2 + vee[1] ** 2 + vee[2] ** 2)
-    theta = np.arctan2(sin, cos)
-    if theta < 1e-9:
-        return 0.5 * vee
-    if sin < 1e-6:  # θ near π: the axis from the symmetric part's largest column
-        S = 0.5 * (R + R.T) - cos * np.eye(3)
-        k = np.argmax(np.array([S[0, 0], S[1, 1], S[2, 2]]))
-        col = np.ascontiguousarray(S[:, k])
-        axis = col / np.sqrt(col @ col)
-        return theta * axis
-    return (theta / (2.0 * sin)) * vee
-
-
-@kernel
-def _orthonormal(R: np.ndarray) -> np.ndarray:
-    """One Newton step of the polar decomposition (drift from many products)."""
-    return 0.5 * R @ (3.0 * np.eye(3) - R.T @ R)
 
 
 @kernel
@@ -530,15 +463,15 @@ def _propagate3(parent: np.ndarray, a: np.ndarray, b: np.ndarray, top: np.ndarra
         Ra = GR[0, 0] if lens[0] else top_R
         Rb = GR[1, 0] if lens[1] else top_R
         # Rotation: the world-frame turn that takes b to a·K, spread along the path.
-        phi = _log3(Ra @ meas_R[e] @ Rb.T)
+        phi = geo.so3_log_one(Ra @ meas_R[e] @ Rb.T)
         factor = min(1.0, 2.0 * np.sqrt(length) * w_rot[e] / (gamma_rot * it))
         _shares(chains, lens, M_rot, share)
         for s in range(2):
             for k in range(lens[s]):
-                GR[s][k] = _exp3((factor * share[s, k]) * phi) @ GR[s][k]
+                GR[s][k] = geo.so3_exp_one((factor * share[s, k]) * phi) @ GR[s][k]
             for k in range(lens[s]):
                 pR = GR[s][k + 1] if k + 1 < lens[s] else top_R
-                R[chains[s][k]] = _orthonormal(pR.T @ GR[s][k])
+                R[chains[s][k]] = geo.renormalize_one(pR.T @ GR[s][k])
         # Translation: b's offset from a·K, spread along the path.
         for s in range(2):
             _chain_world(chains[s], lens[s], R, t, top_R, top_t, GR[s], Gt[s])

@@ -161,7 +161,7 @@ class PoseTree:
         tree = cls(capacity=max(n, 1))
         tree.n = n
         tree.parent[:n] = parent
-        tree.depth[:n] = _depths(np.asarray(parent))
+        tree.depth[:n] = depths(np.asarray(parent))
         tree.R[:n] = R_local
         tree.t[:n] = t_local
         return tree
@@ -204,20 +204,18 @@ class PoseTree:
     def world_poses(self) -> tuple[Array, Array]:
         """World poses of all nodes, composed from the earth down (parents first)."""
         n = self.n
-        R, t = np.empty((n, 3, 3)), np.empty((n, 3))
-        _compose_down(self.parent[:n], self.top_down(), self.R[:n], self.t[:n], R, t)
-        return R, t
+        return compose_down(self.parent[:n], self.top_down(), self.R[:n], self.t[:n])
+
+    def compose_below(self, R: Array, t: Array, first: int) -> None:
+        """Complete world poses ``(R, t)`` whose first ``first`` entries are given: every
+        node from ``first`` on is composed under its parent's pose in ``(R, t)``."""
+        n = self.n
+        order = self.top_down()
+        _compose_down(self.parent[:n], order[order >= first], self.R[:n], self.t[:n], R, t)
 
     def top_down(self) -> np.ndarray:
         """Node indices ordered by depth: every parent comes before its children."""
         return np.argsort(self.depth[: self.n], kind="stable")
-
-    def levels(self) -> list[np.ndarray]:
-        """Node indices grouped by depth ≥ 2, shallowest first."""
-        depth = self.depth[: self.n]
-        order = np.argsort(depth, kind="stable")
-        bounds = np.searchsorted(depth[order], np.arange(2, depth.max(initial=1) + 2))
-        return [order[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
 
     def set_world_poses(self, R_world: Array, t_world: Array) -> None:
         """Set every local transform so that the world poses become ``(R_world, t_world)``."""
@@ -234,6 +232,15 @@ class PoseTree:
         top = np.arange(self.n)
         _tops_down(self.parent[: self.n], self.top_down(), top)
         return top
+
+
+def compose_down(parent: np.ndarray, order: np.ndarray, R_local: Array, t_local: Array
+                 ) -> tuple[Array, Array]:
+    """World poses from local transforms, composed in ``order`` (parents before children,
+    e.g. :meth:`PoseTree.top_down`)."""
+    R, t = np.empty_like(R_local), np.empty_like(t_local)
+    _compose_down(parent, order, R_local, t_local, R, t)
+    return R, t
 
 
 # Compiled: composing level by level ran one numpy call per level, O(depth) interpreter
@@ -298,7 +305,12 @@ def _depths_into(parent: np.ndarray, depth: np.ndarray) -> bool:
     return True
 
 
-def _depths(parent: np.ndarray) -> np.ndarray:
+def depths(parent: np.ndarray) -> np.ndarray:
+    """Depth of every node of a forest of parent pointers (a top has depth 1).
+
+    Raises:
+        ValueError: the parent pointers contain a cycle or an unknown parent.
+    """
     depth = np.zeros(len(parent), dtype=np.int64)
     if not _depths_into(np.ascontiguousarray(parent, dtype=np.int64), depth):
         raise ValueError("parent pointers contain a cycle or an unknown parent")
