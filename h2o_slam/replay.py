@@ -164,9 +164,8 @@ class Replay:
         self.tracks: dict[str, Track] = {name: Track() for name in
                                          ("wheel", "hybrid_vo", "h2o_online", "ground_truth")}
         self.gps_enu: list[np.ndarray] = []
-        self.h2o_ms: list[float] = []
-        self.vo_ms: list[float] = []
-        # For callback_times.png: (bag time s, ms, what the callback handled) of each.
+        # Each callback's (bag time s, ms, what it handled): for callback_times.png and the
+        # summary's percentiles.
         self.h2o_calls: list[tuple[float, float, str]] = []
         self.vo_calls: list[tuple[float, float, str]] = []
         self._h2o_total_ms = 0.0
@@ -246,7 +245,6 @@ class Replay:
         start = time.perf_counter()
         handler(msg)
         ms = 1e3 * (time.perf_counter() - start)
-        self.h2o_ms.append(ms)
         self._h2o_total_ms += ms
         # What the callback did, for the plot: an exact solution solved inline (or received
         # from the worker and merged) costs far more than the input's own handling.
@@ -263,7 +261,6 @@ class Replay:
         start = time.perf_counter()
         handler(msg)
         ms = 1e3 * (time.perf_counter() - start) - (self._h2o_total_ms - h2o_before)
-        self.vo_ms.append(ms)
         kind = "stereo pair" if self._vo_frames > frames_before else "image buffered"
         self.vo_calls.append((self._bag_s(), ms, kind))
 
@@ -459,7 +456,6 @@ class Replay:
                  files: dict[str, str]) -> dict[str, Any]:
         h2o = self._h2o()
         duration_s = ((self.now_ns - self.start_ns) / NS) if self.start_ns is not None else 0.0
-        ms = np.asarray(self.h2o_ms)
         summary: dict[str, Any] = {
             "bag": str(self.options.bag),
             "odometry": "hybrid_vo" if self.use_vo else "wheel",
@@ -475,8 +471,8 @@ class Replay:
             "graph": {"nodes": h2o.mapper.num_nodes,
                       "edges": h2o.mapper.graph().num_edges if h2o.mapper.num_nodes else 0,
                       "chi2": self.chi2_trace[-1][1] if self.chi2_trace else None},
-            "h2o_callback_ms": _percentiles(ms),
-            "vo_callback_ms": _percentiles(np.asarray(self.vo_ms)),
+            "h2o_callback_ms": _percentiles(_times_ms(self.h2o_calls)),
+            "vo_callback_ms": _percentiles(_times_ms(self.vo_calls)),
             "rejected": {k: v for k, v in (h2o.rejected + h2o.mapper.rejected).items()},
             "accepted": dict(h2o.mapper.accepted),
             "files": files,
@@ -526,6 +522,10 @@ def _mapped(stats: BagStats, counts: dict[str, int]) -> dict[str, int]:
     """``counts`` of the topics mapped to a role."""
     topics = set(stats.roles.values())
     return {t: n for t, n in sorted(counts.items()) if t in topics}
+
+
+def _times_ms(calls: list[tuple[float, float, str]]) -> np.ndarray:
+    return np.array([ms for _, ms, _ in calls], dtype=float)
 
 
 def _percentiles(ms: np.ndarray) -> dict[str, float] | None:
