@@ -74,7 +74,7 @@ bench: $(BENCH_STAMP)
 	$(PY) bench/lago.py
 	$(PY) bench/online.py
 
-# The README's pictures: the three plots h2o-demo draws of both runs (h2o_slam.cli.replay_demo.PLOTS).
+# The README's pictures: the three plots h2o-demo draws of both runs (h2o_slam.app.cli.demo.PLOTS).
 DOC_IMAGES := trajectories.png chi2.png callback_times.png
 
 doc-images:

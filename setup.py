@@ -30,11 +30,11 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
-            "h2o-solve = h2o_slam.cli.solve:main",
-            "h2o_node = h2o_slam.h2o_node:main",
+            "h2o-solve = h2o_slam.app.cli.solve:main",
+            "h2o_node = h2o_slam.ros.h2o_node:main",
             "hybrid_vo_node = hybrid_vo.vo_node:main",
-            "h2o-replay = h2o_slam.cli.replay:main",
-            "h2o-demo = h2o_slam.cli.replay_demo:main",
+            "h2o-replay = h2o_slam.app.cli.replay:main",
+            "h2o-demo = h2o_slam.app.cli.demo:main",
         ],
     },
 )

@@ -3,7 +3,7 @@
     .venv/bin/python bench/cost.py [--data DIR] [--graphs NAME ...] [--results FILE]
 
 For each graph (default city10000, kitti_00, manhattan) one offline pass — edges by
-increasing root depth from the tree initialization, as :func:`h2o_slam.modes.offline_pass`
+increasing root depth from the tree initialization, as :func:`h2o_slam.core.modes.offline_pass`
 orders them — is run once per solver: a TORO-style update and H₂O's single-edge update
 (:meth:`H2OSolver.relax`) with ``d_max`` = 75, 100, 150, 200 and ∞. Every update is timed
 on its own; the table gives the average and maximum time per constraint, the average time of
@@ -32,14 +32,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from results_md import add_graph_arguments, command, publish, results_path, revision, select_graphs  # noqa: E402
 
-from h2o_slam import geometry as geo  # noqa: E402
-from h2o_slam import interpolate  # noqa: E402
-from h2o_slam.compiled import warm_up  # noqa: E402
-from h2o_slam.errors import H2OError  # noqa: E402
-from h2o_slam.g2o import read_g2o  # noqa: E402
-from h2o_slam.graph import EdgeKind, PoseGraph  # noqa: E402
-from h2o_slam.modes import build_solver, offline_order  # noqa: E402
-from h2o_slam.solver import H2OSolver  # noqa: E402
+from h2o_slam.core import geometry as geo  # noqa: E402
+from h2o_slam.core import interpolate  # noqa: E402
+from h2o_slam.core.compiled import warm_up  # noqa: E402
+from h2o_slam.core.errors import H2OError  # noqa: E402
+from h2o_slam.core.graph import EdgeKind, PoseGraph  # noqa: E402
+from h2o_slam.core.modes import build_solver, offline_order  # noqa: E402
+from h2o_slam.core.solver import H2OSolver  # noqa: E402
+from h2o_slam.io.g2o import read_g2o  # noqa: E402
 
 SECTION = "## Cost per constraint (bench/cost.py)"
 DEFAULT_GRAPHS = ["city10000", "kitti_00", "manhattan"]
@@ -52,7 +52,7 @@ def toro_update(solver: H2OSolver, edge: int) -> None:
 
     The endpoint that has a chain below the root is moved (by the temperature's share) to
     where the measurement puts it relative to the other endpoint, and the move is spread over
-    its chain with :func:`h2o_slam.interpolate.distribute_into`, weighted by the compliance
+    its chain with :func:`h2o_slam.core.interpolate.distribute_into`, weighted by the compliance
     ``1 / diag(B)`` as TORO weights by its preconditioner: O(d) compositions.
     """
     if solver.kind[edge] != EdgeKind.RELATIVE:
@@ -218,7 +218,7 @@ NOTES = """Notes:
 - TORO-style: no linearization and no solve; one endpoint is moved to where the measurement
   puts it and the move is spread over its chain by the compliance `1 / diag(B)`
   (`bench/cost.py: toro_update`). It is a cost reference, not a solver to compare χ² with.
-- Our D_max = ∞ update is O(d) (`h2o_slam.hybrid`), not the thesis' O(d²) Givens QR, so the
+- Our D_max = ∞ update is O(d) (`h2o_slam.core.hybrid`), not the thesis' O(d²) Givens QR, so the
   ratio of maxima is a ratio of per-node constants, not of d² to d·D_max: interpolation
   trades the solve's ≈0.8 µs per node for the merge and distribution's ≈0.7 µs per node
   (`bench/README.md`, "Why numba").

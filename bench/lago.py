@@ -7,7 +7,7 @@ on the public planar pose graphs, and LAGO as the warm start of H₂O's offline 
 For every planar ``*.g2o`` in ``--data`` (default ``../shared/data/posegraphs/`` relative to
 the repo root; a missing folder is reported and the script exits 0):
 
-- our LAGO, :func:`h2o_slam.lago.lago_estimate`, timed in-process (median of ``--repeats``
+- our LAGO, :func:`h2o_slam.core.lago.lago_estimate`, timed in-process (median of ``--repeats``
   runs after one warm-up; file reading excluded), with ``jacobian="estimate"`` (the
   default, eq. (12)) and ``"measurement"`` (Theorem 1's exact GN step); and once through
   the real command line, ``h2o-solve IN --output OUT --solver lago --report R.json``;
@@ -16,14 +16,14 @@ the repo root; a missing folder is reported and the script exits 0):
   so it gets the diagonal of each one; its answer is scored on the real problem;
 - GTSAM's Levenberg–Marquardt from the graph's own estimate (as ``bench/solvers.py``) and
   from our LAGO;
-- H₂O offline (:func:`h2o_slam.modes.solve_offline`) for ``--passes`` passes from
+- H₂O offline (:func:`h2o_slam.core.modes.solve_offline`) for ``--passes`` passes from
   ``init="tree"`` (the default start) and ``init="lago"``: the first pass whose χ² is within
   1.05 × the optimum;
 - H₂O's exact mode (Gauss–Newton on our χ²) from our LAGO, for the optimum of our metric;
-- the sparse factorizations :func:`h2o_slam.lago.solve_spd` offers, timed on the phase-3
+- the sparse factorizations :func:`h2o_slam.core.lago.solve_spd` offers, timed on the phase-3
   system ``Ω_x`` (the larger of LAGO's two) and over a whole LAGO run.
 
-Every χ² is :func:`h2o_slam.graph.chi2` on the input graph. The optimum is the smallest χ²
+Every χ² is :func:`h2o_slam.core.graph.chi2` on the input graph. The optimum is the smallest χ²
 any run reached on that graph. The tables go to stdout and replace the section
 ``## LAGO (bench/lago.py)`` of ``bench/RESULTS.md`` (other sections are kept).
 """
@@ -49,13 +49,13 @@ from typing import Any
 import numpy as np
 from results_md import add_graph_arguments, command, publish, results_path, revision, select_graphs
 
-from h2o_slam import geometry as geo
-from h2o_slam import lago as lago_mod
-from h2o_slam import spd
-from h2o_slam.g2o import read_g2o
-from h2o_slam.graph import PoseGraph, chi2
-from h2o_slam.lago import lago, lago_estimate, solve_spd
-from h2o_slam.modes import solve_exact, solve_offline
+from h2o_slam.core import geometry as geo
+from h2o_slam.core import lago as lago_mod
+from h2o_slam.core import spd
+from h2o_slam.core.graph import PoseGraph, chi2
+from h2o_slam.core.lago import lago, lago_estimate, solve_spd
+from h2o_slam.core.modes import solve_exact, solve_offline
+from h2o_slam.io.g2o import read_g2o
 
 REPO = Path(__file__).resolve().parents[1]
 SECTION = "## LAGO (bench/lago.py)"
@@ -196,7 +196,7 @@ def run_lm(graph: PoseGraph, R: np.ndarray, t: np.ndarray) -> tuple[float, int]:
 def run_cli(path: Path, out_dir: Path, row: Row) -> None:
     """``h2o-solve --solver lago`` as a subprocess; its output file rescored."""
     out, report = out_dir / f"{path.stem}.lago.g2o", out_dir / f"{path.stem}.lago.json"
-    cmd = [sys.executable, "-m", "h2o_slam.cli.solve", str(path), "--output", str(out),
+    cmd = [sys.executable, "-m", "h2o_slam.app.cli.solve", str(path), "--output", str(out),
            "--solver", "lago", "--report", str(report)]
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
@@ -308,7 +308,7 @@ def format_tables(rows: list[Row], passes: int) -> str:
     head3 = ("| graph | Ω_x size | Ω_x nnz | "
              + " | ".join(f"Ω_x solve ms: {m}" for m in methods) + " | "
              + " | ".join(f"LAGO ms: {m}" for m in methods) + " |")
-    lines += ["", "Sparse factorizations (`h2o_slam.lago.solve_spd`; median ms):", "", head3,
+    lines += ["", "Sparse factorizations (`h2o_slam.core.lago.solve_spd`; median ms):", "", head3,
               "| " + " | ".join(["---"] * (head3.count("|") - 1)) + " |"]
     for r in rows:
         lines.append("| " + " | ".join(
@@ -335,10 +335,10 @@ def notes(repeats: int) -> str:
     return f"""\
 Notes:
 
-- χ² is the project's evaluator `h2o_slam.graph.chi2` on the input graph at each
+- χ² is the project's evaluator `h2o_slam.core.graph.chi2` on the input graph at each
   solver's output; "opt" is the smallest χ² of any run on that graph in this table (not a
   certified global optimum).
-- ours: `h2o_slam.lago.lago_estimate` (full 3×3 information, correlations included;
+- ours: `h2o_slam.core.lago.lago_estimate` (full 3×3 information, correlations included;
   `jacobian="estimate"`, the paper's (12)); "J at Δ̄": `lago(graph, jacobian="measurement")`,
   exactly one Gauss–Newton step from (p̂, θ̂) (Theorem 1). Time: median of {repeats} in-process
   calls after a warm-up, file reading excluded; everything from the `PoseGraph` to the
@@ -356,10 +356,10 @@ Notes:
   {PRIOR_SIGMA:g}; from the graph's own estimate (its vertices, or the odometry chain) and
   from our LAGO. LM minimizes GTSAM's own error (Pose2 `Logmap`), which differs from our χ²
   where residuals are large (see the Solvers section).
-- H₂O exact: `h2o_slam.modes.solve_exact(graph, {EXACT_ITERATIONS}, init="lago")`, damped
+- H₂O exact: `h2o_slam.core.modes.solve_exact(graph, {EXACT_ITERATIONS}, init="lago")`, damped
   Gauss–Newton on our χ² itself, from our LAGO: where LM's metric and ours disagree (large
   residuals, MIT) it finds the optimum of ours.
-- H₂O offline: `h2o_slam.modes.solve_offline(graph, P, init=...)` in-process; pass 0 is
+- H₂O offline: `h2o_slam.core.modes.solve_offline(graph, P, init=...)` in-process; pass 0 is
   the starting estimate. "passes to {TARGET}× opt" is the first pass at or below
   {TARGET} × opt.
 - Factorizations: `solve_spd(Ω_x, b, method)` on the phase-3 matrix, and the whole

@@ -49,10 +49,10 @@ from typing import Any
 import numpy as np
 from results_md import command, replace_section, revision
 
-from h2o_slam.errors import H2OError
-from h2o_slam.g2o import read_g2o, write_g2o
-from h2o_slam.graph import chi2
-from h2o_slam.modes import solve_exact
+from h2o_slam.core.errors import H2OError
+from h2o_slam.core.graph import chi2
+from h2o_slam.core.modes import solve_exact
+from h2o_slam.io.g2o import read_g2o, write_g2o
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_RESULTS = REPO / "bench" / "RESULTS.md"
@@ -106,7 +106,7 @@ class Growth:
 def _cpu_timed_node() -> Any:
     """``H2ONode`` whose input callbacks also record their thread CPU time (ms): the wall
     time the node reports minus this is time the process waited for a core."""
-    from h2o_slam.h2o_node import H2ONode
+    from h2o_slam.ros.h2o_node import H2ONode
 
     class CpuTimedNode(H2ONode):
         def __init__(self, **kwargs: Any) -> None:
@@ -143,7 +143,7 @@ def serve_node(namespace: str, budget_ms: float, window: int, profile: Path | No
     from rclpy.logging import LoggingSeverity
     from rclpy.parameter import Parameter
 
-    from h2o_slam.timing import CallbackTimes
+    from h2o_slam.core.timing import CallbackTimes
 
     rclpy.init()
     remaps = ["--ros-args", "-r", f"/diagnostics:={namespace}/diagnostics",
@@ -188,7 +188,7 @@ def serve_node(namespace: str, budget_ms: float, window: int, profile: Path | No
 
 def drive_config(laps: int, seed: int) -> Any:
     """The drive of ``h2o-demo`` (slip square, RTK-grade GPS), ``laps`` times round."""
-    from h2o_slam.cli.replay_demo import demo_drive
+    from h2o_slam.app.cli.demo import demo_drive
 
     return demo_drive(seed, laps)
 
@@ -669,7 +669,7 @@ Notes:
   odometry straight into the node's `odom` input; messages are built before the clock
   starts and published at `--speed` × the recorded pace (reliable writers; the node's odom
   and GPS readers are best effort, depth 200).
-- Callback times are the node's own (`h2o_slam.timing.CallbackTimes`, read from its
+- Callback times are the node's own (`h2o_slam.core.timing.CallbackTimes`, read from its
   `/diagnostics` at the end of the run: `callbacks`, `mean_ms`, `p50_ms`, `p99_ms`,
   `max_ms`, `overruns`); the benchmark widens the node's window to the whole run, so the
   percentiles cover every callback (the node's default window is the last 2000). An overrun
@@ -686,7 +686,7 @@ Notes:
   publication each second, map→odom at 20 Hz, diagnostics), the callback itself, and the
   monitor's own executor.
 - Map: when the node stops (SIGINT after the drain), its graph at its final estimate
-  (`Mapper.graph()`) is written as g2o; "map χ² / optimum" is `h2o_slam.graph.chi2` of that
+  (`Mapper.graph()`) is written as g2o; "map χ² / optimum" is `h2o_slam.core.graph.chi2` of that
   file over the exact optimum of the same graph (`solve_exact(graph, iterations=100,
   init="input")`, from the node's own estimate; the smaller of the two is the optimum).
 - Counts: "published" by the publisher; "accepted" and the rejections are the node's
@@ -814,7 +814,7 @@ Notes:
   10 s before the report; RSS of the node's process, and with its exact-solver worker,
   read from `/proc` when the report arrived.
 - `dropped odom (node)` is the node's own count from gaps in the odometry stamps
-  (`h2o_slam.timing.InputHealth`), checked against the publisher's count at the end of the
+  (`h2o_slam.core.timing.InputHealth`), checked against the publisher's count at the end of the
   run (published − accepted − rejected). `late` is a sample handled more than
   `input_late_ms` (100) after its stamp, less the smallest such delay seen.
 """

@@ -7,9 +7,9 @@ both fed the public pose graphs one callback per arriving pose (issue 11).
 
 Protocol, per graph:
 
-1. Sample points: the poses ``h2o_slam.modes.sample_points(graph, 20)`` returns (20 spread
+1. Sample points: the poses ``h2o_slam.core.modes.sample_points(graph, 20)`` returns (20 spread
    over the stream and up to 20 that close a loop). A sample after pose ``k`` covers the
-   first ``k+1`` poses and the edges among them (:func:`h2o_slam.modes.prefix_graph`).
+   first ``k+1`` poses and the edges among them (:func:`h2o_slam.core.modes.prefix_graph`).
 2. Exact prefix optima, computed once per graph and shared by every budget:
    ``solve_exact(prefix_graph(graph, k+1), iterations=100).chi2_final`` at every sample.
 3. H₂O: ``h2o-solve --mode online --budget-ms B --passes 0 --idle-s 1 --samples 20`` at each
@@ -17,7 +17,7 @@ Protocol, per graph:
    gives χ² of the edges so far at every sample, χ² at the end of the stream, χ² after the
    1 s of budgeted idle steps, and the exact solves that ran beside the updates; the trace
    gives every callback's wall time.
-4. GTSAM ``ISAM2`` fed the same arrivals (:func:`h2o_slam.modes.arrivals`: at pose ``k``
+4. GTSAM ``ISAM2`` fed the same arrivals (:func:`h2o_slam.core.modes.arrivals`: at pose ``k``
    every edge whose newest pose is ``k``) in this process, one ``update`` per pose. After
    the update of a sampled pose, outside its timed region, the χ² of the edges so far at
    its estimate.
@@ -30,7 +30,7 @@ Protocol, per graph:
    optimum is ~0 (under ``ZERO_CHI2``: no loop closed yet, every estimate fits the tree
    exactly) r is 1 if H₂O's χ² is also ~0, else infinite.
 
-Every χ² is the one evaluator :func:`h2o_slam.graph.edge_chi2` summed over the edges
+Every χ² is the one evaluator :func:`h2o_slam.core.graph.edge_chi2` summed over the edges
 received so far. The tables go to stdout and replace the section ``## Online
 (bench/online.py)`` of ``bench/RESULTS.md`` (other sections are kept); one PNG per graph,
 r against poses received, goes to ``bench/plots/online_<graph>.png``.
@@ -56,10 +56,10 @@ from typing import Any
 import numpy as np
 from results_md import REPO, add_graph_arguments, publish, results_path, select_graphs
 
-from h2o_slam.errors import H2OError
-from h2o_slam.g2o import read_g2o
-from h2o_slam.graph import PoseGraph, chi2, edge_chi2
-from h2o_slam.modes import arrivals, prefix_graph, sample_points, solve_exact
+from h2o_slam.core.errors import H2OError
+from h2o_slam.core.graph import PoseGraph, chi2, edge_chi2
+from h2o_slam.core.modes import arrivals, prefix_graph, sample_points, solve_exact
+from h2o_slam.io.g2o import read_g2o
 
 
 def _load_solvers() -> ModuleType:
@@ -257,7 +257,7 @@ def run_h2o_online(graph: PoseGraph, path: Path, out_dir: Path, budget_ms: float
     stem = f"{path.stem}.online{budget_ms:g}ms"
     out, report, trace = (out_dir / f"{stem}{ext}"
                           for ext in (".g2o", ".report.json", ".trace.json"))
-    cmd = [sys.executable, "-m", "h2o_slam.cli.solve", str(path), "--output", str(out),
+    cmd = [sys.executable, "-m", "h2o_slam.app.cli.solve", str(path), "--output", str(out),
            "--mode", "online", "--budget-ms", f"{budget_ms:g}", "--passes", "0",
            "--idle-s", f"{IDLE_S:g}", "--samples", str(SAMPLES),
            "--period-ms", f"{period_ms:g}", "--report", str(report), "--trace", str(trace)]
@@ -791,11 +791,11 @@ def _summary(results: list[GraphOnline]) -> str:
 NOTES = f"""\
 Notes:
 
-- Feed: for pose k, every edge whose newest pose is k (`h2o_slam.modes.arrivals`, the order
+- Feed: for pose k, every edge whose newest pose is k (`h2o_slam.core.modes.arrivals`, the order
   `h2o-solve --mode online` uses), one callback per pose, poses in index order, pose k
   arriving k × {{period}} ms after the first (`--period-ms`; 0: back to back). Between arrivals
   H₂O runs budgeted idle steps, one per two budgets, as `h2o_node`'s idle timer does.
-- Sample points: `h2o_slam.modes.sample_points(graph, {SAMPLES})` ({SAMPLES} poses spread over
+- Sample points: `h2o_slam.core.modes.sample_points(graph, {SAMPLES})` ({SAMPLES} poses spread over
   the stream and up to {SAMPLES} that close a loop); a sample after pose k covers the first
   k+1 poses ("poses received") and the edges among them.
 - H₂O: `h2o-solve IN --output OUT --mode online --budget-ms B --passes 0 --idle-s {IDLE_S:g}
@@ -811,7 +811,7 @@ Notes:
   total time, i.e. how many updates a second of callback time holds.
 - GTSAM iSAM2 (same process as this script): `ISAM2(ISAM2Params())` with GTSAM's defaults
   (Gauss–Newton, relinearizeThreshold 0.1, relinearizeSkip 10, wildfire 0.001, Cholesky);
-  BetweenFactorPose2/Pose3 built by bench/solvers.py from `h2o_slam.g2o.read_g2o`; a prior
+  BetweenFactorPose2/Pose3 built by bench/solvers.py from `h2o_slam.io.g2o.read_g2o`; a prior
   of sigma {solvers.PRIOR_SIGMA:g} on pose 0 at its file pose; pose k starts at pose k−1's
   current estimate composed with the k−1→k odometry. One `update` per pose; a callback's
   time is `update` plus `calculateEstimatePose2/3(k)`. After the update of each sampled
@@ -826,7 +826,7 @@ Notes:
   budgets. The optimum of the full graph is the one at the last sample (the last pose).
   Neither is a certified global optimum. Where the optimum is below {ZERO_CHI2:g} (no loop
   closed yet) r is 1 if H₂O's χ² is also below it, else ∞. Every χ² is
-  `h2o_slam.graph.edge_chi2` summed over the edges received so far.
+  `h2o_slam.core.graph.edge_chi2` summed over the edges received so far.
 - r: median and p95 (numpy's linear interpolation) over the sample points; "r end of
   stream" is `chi2_end_of_stream` / the full optimum; "r after idle" is `chi2_after_idle` /
   the full optimum.

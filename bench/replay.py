@@ -7,7 +7,7 @@ The drive of ``h2o-demo`` (the slip square of :mod:`hybrid_vo.world`, 36 s a lap
 ≈ 10 minutes, ~6100 rendered stereo frames at 10 Hz, wheel odometry, GPS at 1 Hz, loop
 closures, ground truth) is written once as an MCAP bag under ``--output-dir`` and reused by
 later runs (rendering it takes minutes; the time is printed). The replay itself,
-``h2o_slam.replay.replay(ReplayOptions(bag, output))`` with the defaults ``h2o-replay``
+``h2o_slam.app.replay.replay(ReplayOptions(bag, output))`` with the defaults ``h2o-replay``
 uses (hybrid VO odometry, every edge solved in full), runs in a fresh child process; its
 peak resident set size is the child's ``ru_maxrss`` as ``os.wait4`` reports it. The table
 goes to stdout and replaces the section ``## Replay (bench/replay.py)`` of
@@ -50,8 +50,8 @@ def record_bag(out_dir: Path, laps: int, seed: int) -> tuple[Path, dict[str, Any
     Returns the bag's folder and its record: frames, messages per topic, size, and
     ``record_s`` (the time it took to write it, when it was written by an earlier run too).
     """
-    from h2o_slam.cli.replay_demo import demo_drive
-    from h2o_slam.replay_io import write_bag
+    from h2o_slam.app.cli.demo import demo_drive
+    from h2o_slam.io.bag_writer import write_bag
     from hybrid_vo import world
     from hybrid_vo.world_messages import drive_messages
 
@@ -81,8 +81,8 @@ def record_bag(out_dir: Path, laps: int, seed: int) -> tuple[Path, dict[str, Any
 def replay_child(bag: Path, output: Path, result: Path) -> int:
     """Replay ``bag`` into ``output``; write the summary and this process's RSS to ``result``."""
     start = time.perf_counter()
-    from h2o_slam.cli.replay_demo import WORLD_DATUM
-    from h2o_slam.replay import ReplayOptions, replay
+    from h2o_slam.app.cli.demo import WORLD_DATUM
+    from h2o_slam.app.replay import ReplayOptions, replay
 
     imported_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     imports_s = time.perf_counter() - start
@@ -161,12 +161,12 @@ def verdict(res: dict[str, Any]) -> str:
 NOTES = """\
 Notes:
 
-- Drive: `h2o-demo`'s (`h2o_slam.cli.replay_demo.demo_drive(seed, laps)`: the slip square,
+- Drive: `h2o-demo`'s (`h2o_slam.app.cli.demo.demo_drive(seed, laps)`: the slip square,
   36 s a lap, stereo 160×120 at 10 Hz, wheel odometry at the frame rate with slip and
   hallucinated turns, GPS σ 5 cm at 1 Hz with NO_FIX dropouts, loop closures, ground
-  truth), written by `h2o_slam.replay_io.write_bag(drive_messages(drive))` as MCAP. "record
+  truth), written by `h2o_slam.io.bag_writer.write_bag(drive_messages(drive))` as MCAP. "record
   s" is simulating, rendering and writing it, done once and cached under `--output-dir`.
-- Replay: `h2o_slam.replay.replay(ReplayOptions(bag, output, h2o_params={"datum": …}))` —
+- Replay: `h2o_slam.app.replay.replay(ReplayOptions(bag, output, h2o_params={"datum": …}))` —
   `h2o-replay`'s defaults: hybrid VO odometry into h2o_node, `budget_ms` 0 (every edge in
   full, deterministic), all outputs (MCAP of the outputs, TUM, g2o, plots, summary) — in a
   fresh child process. "replay wall s" and "× real time" are the summary's `wall_time_s`

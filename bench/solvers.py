@@ -4,9 +4,9 @@ Levenberg–Marquardt on the public pose graphs.
     .venv/bin/python bench/solvers.py [--data DIR] [--graphs NAME ...] [--timeout S]
                                       [--output-dir DIR] [--results FILE]
 
-Every solver starts from the same estimate — the graph as :func:`h2o_slam.g2o.read_g2o`
+Every solver starts from the same estimate — the graph as :func:`h2o_slam.io.g2o.read_g2o`
 returns it: the file's vertices, or the odometry chain when the file has none — and every
-solution is scored by the one evaluator :func:`h2o_slam.graph.chi2` on the input graph,
+solution is scored by the one evaluator :func:`h2o_slam.core.graph.chi2` on the input graph,
 not by the solver's own report. The table goes to stdout and replaces the section
 ``## Solvers (bench/solvers.py)`` of ``bench/RESULTS.md`` (other sections are kept).
 """
@@ -31,10 +31,10 @@ from typing import Any
 import numpy as np
 from results_md import add_graph_arguments, command, publish, results_path, revision, select_graphs
 
-from h2o_slam import geometry as geo
-from h2o_slam.errors import H2OError
-from h2o_slam.g2o import read_g2o
-from h2o_slam.graph import EdgeKind, PoseGraph, chi2
+from h2o_slam.core import geometry as geo
+from h2o_slam.core.errors import H2OError
+from h2o_slam.core.graph import EdgeKind, PoseGraph, chi2
+from h2o_slam.io.g2o import read_g2o
 
 REPO = Path(__file__).resolve().parents[1]
 SECTION = "## Solvers (bench/solvers.py)"
@@ -106,7 +106,7 @@ def run_h2o(
     """Run ``h2o-solve`` on ``path`` as a subprocess and rescore its output on ``graph``."""
     stem = f"{path.stem}.{mode}"
     out, report = out_dir / f"{stem}.g2o", out_dir / f"{stem}.report.json"
-    cmd = [sys.executable, "-m", "h2o_slam.cli.solve", str(path), "--output", str(out),
+    cmd = [sys.executable, "-m", "h2o_slam.app.cli.solve", str(path), "--output", str(out),
            "--mode", mode, "--report", str(report)]
     if passes is not None:
         cmd += ["--passes", str(passes)]
@@ -335,9 +335,9 @@ def format_tables(results: list[GraphResult]) -> str:
 NOTES = f"""\
 Notes:
 
-- Every solver starts from the graph as `h2o_slam.g2o.read_g2o` returns it (the file's
+- Every solver starts from the graph as `h2o_slam.io.g2o.read_g2o` returns it (the file's
   vertices, or the odometry chain when the file has none). Every χ² is the project's
-  evaluator `h2o_slam.graph.chi2` on the *input* graph at the solver's output estimate (for
+  evaluator `h2o_slam.core.graph.chi2` on the *input* graph at the solver's output estimate (for
   H₂O: the `--output` g2o file read back), not the solver's own report.
 - χ²/opt divides by the smallest χ² any of the three solvers reached on that graph in this
   run (not a certified global optimum).

@@ -9,10 +9,10 @@ is reported and the script exits 0), two matrices:
 - LAGO's phase-3 matrix ``Ω_x`` (planar graphs; ``lago(graph).information``), solved once:
   what LAGO pays (ordering, symbolic analysis and numeric factorization, then the solve);
 - exact mode's ``H = JᵀJ`` at the tree initialization
-  (``h2o_slam.exact.ExactSystem.normal_equations``),
+  (``h2o_slam.core.exact.ExactSystem.normal_equations``),
   refactorized with the kept symbolic analysis: what each Gauss–Newton iteration pays.
 
-Every backend of :mod:`h2o_slam.spd` that is installed is timed, fresh and (for exact
+Every backend of :mod:`h2o_slam.core.spd` that is installed is timed, fresh and (for exact
 mode) refactorized, median of ``--repeats`` after a warm-up. The table goes to stdout and
 replaces the section ``## Sparse factorizations (bench/spd.py)`` of ``bench/RESULTS.md``.
 """
@@ -35,11 +35,11 @@ import numpy as np
 import scipy.sparse as sp
 from results_md import add_graph_arguments, command, publish, results_path, revision, select_graphs
 
-from h2o_slam import spd
-from h2o_slam.exact import ExactSystem
-from h2o_slam.g2o import read_g2o
-from h2o_slam.lago import lago
-from h2o_slam.modes import build_solver
+from h2o_slam.core import spd
+from h2o_slam.core.exact import ExactSystem
+from h2o_slam.core.lago import lago
+from h2o_slam.core.modes import build_solver
+from h2o_slam.io.g2o import read_g2o
 
 REPO = Path(__file__).resolve().parents[1]
 SECTION = "## Sparse factorizations (bench/spd.py)"
@@ -114,7 +114,7 @@ def render(rows: list[tuple[str, str, int, int, dict]], repeats: int) -> str:
         f"- Median of {repeats} runs after a warm-up, each a factorization and one solve of a "
         "random right-hand side. \"fresh\": ordering, symbolic analysis and numeric "
         "factorization (what LAGO pays once per matrix); \"refactor\": a numeric "
-        "factorization with the symbolic analysis kept (`h2o_slam.spd.SPDFactor`), what "
+        "factorization with the symbolic analysis kept (`h2o_slam.core.spd.SPDFactor`), what "
         "each exact-mode iteration and damping retry pays. SuperLU keeps nothing.",
         "- `cholmod` is CHOLMOD from cvxopt's wheel (supernodal, AMD, OpenBLAS), `qdldl` "
         "OSQP's LDLᵀ (AMD), `splu` SuperLU in symmetric mode with MMD on Aᵀ+A.",

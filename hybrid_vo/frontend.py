@@ -39,8 +39,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from h2o_slam.errors import InputError
-from h2o_slam.geometry import PLANAR_DOF
+from h2o_slam.core.errors import InputError
+from h2o_slam.core.geometry import PLANAR_DOF
 from hybrid_vo import patches as pt
 from hybrid_vo.camera import CameraIntrinsics, CameraMounting
 from hybrid_vo.errors import ConfigError, FrameError

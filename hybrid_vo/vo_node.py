@@ -46,9 +46,9 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_srvs.srv import SetBool, Trigger
 
 import msg_adapters as ma
-from h2o_slam.boundary import behind_boundary
-from h2o_slam.errors import InputError
-from h2o_slam.node_main import run_node
+from h2o_slam.core.errors import InputError
+from h2o_slam.ros.boundary import behind_boundary
+from h2o_slam.ros.node_main import run_node
 from hybrid_vo.errors import HybridVOError
 from hybrid_vo.frontend import (
     BAD_IMAGE,

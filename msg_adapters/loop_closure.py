@@ -14,7 +14,7 @@ A loop closure is a ``nav_msgs/Odometry`` on the h2o_node's loop-closure topic:
 * ``pose.covariance`` (6×6, row-major, ROS order x, y, z, rot x, rot y, rot z) is the
   covariance of the error ``[t_E; Log(R_E)]`` of ``K⁻¹ (T_from⁻¹ T_to)`` with ``K`` the
   measurement: a perturbation applied on the right, in the frame of *to* — the
-  convention of the solver (``h2o_slam.geometry``) and the inverse of a g2o
+  convention of the solver (``h2o_slam.core.geometry``) and the inverse of a g2o
   ``EDGE_SE3:QUAT`` information matrix. It must be positive definite; all zeros
   ("unknown") takes the node's default covariance, if it has one.
 * ``header.stamp`` is when the closure was found (informational); ``twist`` is ignored.

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from h2o_slam.geometry import PLANAR_DOF, matrix_to_yaw, yaw_to_matrix
+from h2o_slam.core.geometry import PLANAR_DOF, matrix_to_yaw, yaw_to_matrix
 from msg_adapters._util import Array, covariance, finite_array, new_message, set_float_array
 from msg_adapters.errors import AdapterError
 from msg_adapters.rotations import QUAT_NORM_TOL, fill_pose, pose_to_matrix

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from h2o_slam.geometry import compose, inverse, matrix_to_quat
+from h2o_slam.core.geometry import compose, inverse, matrix_to_quat
 from msg_adapters._util import Array, as_rotations, element_class, finite_array, new_message
 from msg_adapters.errors import AdapterError
 from msg_adapters.rotations import fill_transform_fields

@@ -1,6 +1,6 @@
 """Quaternions of ROS messages (``x, y, z, w``) ⇄ the cores' rotation matrices.
 
-The cores use rotation matrices (:mod:`h2o_slam.geometry`); quaternions meet them only
+The cores use rotation matrices (:mod:`h2o_slam.core.geometry`); quaternions meet them only
 here. A quaternion must be finite, non-zero and of unit norm within ``norm_tol`` (it is
 then normalized); anything else is a malformed message, not something to repair.
 """
@@ -48,7 +48,7 @@ def quaternion_to_matrix(
     if norm_tol is not None and abs(norm - 1.0) > norm_tol:
         raise AdapterError(f"{field}: quaternion norm {norm:.6g} is not 1 (tolerance {norm_tol})")
     # One quaternion per message: plain floats are ~10x faster than the batched numpy path
-    # (h2o_slam.geometry.quat_to_matrix), which 50 Hz odometry notices.
+    # (h2o_slam.core.geometry.quat_to_matrix), which 50 Hz odometry notices.
     x, y, z, w = x / norm, y / norm, z / norm, w / norm
     return np.array([
         [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - z * w), 2.0 * (x * z + y * w)],
@@ -71,7 +71,7 @@ def matrix_to_quaternion(R: Any) -> tuple[float, float, float, float]:
     if err > 1e-6 or det < 0.0:
         raise AdapterError(f"rotation: not a rotation matrix (|RᵀR − I| = {err:.3g})")
     # Shepperd: divide by the largest of the four candidates, in plain floats (one matrix
-    # per message; the batched h2o_slam.geometry.matrix_to_quat costs ~10x more).
+    # per message; the batched h2o_slam.core.geometry.matrix_to_quat costs ~10x more).
     trace = a + e + i
     if trace >= max(a, e, i):
         r = math.sqrt(1.0 + trace)

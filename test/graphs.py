@@ -1,11 +1,11 @@
-"""Small random pose graphs for solver tests (independent of h2o_slam.synthetic)."""
+"""Small random pose graphs for solver tests (independent of h2o_slam.io.synthetic)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from h2o_slam import geometry as geo
-from h2o_slam.graph import EARTH, EdgeKind, PoseGraph, make_graph
+from h2o_slam.core import geometry as geo
+from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, make_graph
 
 
 def random_info(rng: np.random.Generator, dim: int) -> np.ndarray:

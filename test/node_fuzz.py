@@ -37,7 +37,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix
 from std_srvs.srv import SetBool, Trigger
 
-from h2o_slam.h2o_node import H2ONode
+from h2o_slam.ros.h2o_node import H2ONode
 from hybrid_vo.vo_node import HybridVoNode
 
 START_S = 1_700_000_000

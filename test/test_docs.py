@@ -11,9 +11,9 @@ from typing import Any
 
 import pytest
 
-from h2o_slam.cli.replay_demo import PLOTS
-from h2o_slam.h2o_node import PARAMETERS as H2O_PARAMETERS
-from h2o_slam.h2o_node import RUNTIME
+from h2o_slam.app.cli.demo import PLOTS
+from h2o_slam.ros.h2o_node import PARAMETERS as H2O_PARAMETERS
+from h2o_slam.ros.h2o_node import RUNTIME
 from hybrid_vo.vo_node import PARAMETERS as VO_PARAMETERS
 
 ROOT = Path(__file__).resolve().parents[1]

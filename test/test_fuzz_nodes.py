@@ -32,7 +32,7 @@ from node_fuzz import (
 from rclpy.context import Context
 from sensor_msgs.msg import NavSatFix
 
-from h2o_slam.errors import InputError
+from h2o_slam.core.errors import InputError
 
 # Bounded for CI: about 15 s per node here (a graph solved in full per input is the cost).
 FUZZ = dict(deadline=None, derandomize=True,

@@ -1,62 +1,153 @@
-"""Layering (DESIGN §1): the cores run as plain libraries, without rclpy.
+"""Layering (DESIGN §1): h2o_slam is core < io < ros < app, and imports only run downward.
 
-ruff's banned-api rule (pyproject.toml) stops a core module from importing rclpy itself;
-this test also catches the indirect case, a core module that imports something that
-imports rclpy. Node modules (``*node*.py``) and bag replay (``h2o_slam/replay*.py``) are
-the shells allowed to use it.
+* ``h2o_slam.core`` — the solver mathematics: no file formats, no rclpy, no plotting.
+* ``h2o_slam.io`` — files and bags, over the core (rclpy only inside the bag writer).
+* ``h2o_slam.ros`` — the node and its rclpy-free mapper, over io and core.
+* ``h2o_slam.app`` — replay and the commands: the only part of h2o_slam that may import
+  ``hybrid_vo``.
+
+``msg_adapters`` sits on the core; ``hybrid_vo`` on the core, ``msg_adapters`` and the ROS
+layer's node plumbing. Two checks: every import statement in the source (also those inside
+functions), and what importing each module actually loads (which catches indirect
+imports). ruff's banned-api rule (pyproject.toml) stops rclpy in a core file at lint time.
 """
 
 from __future__ import annotations
 
+import ast
 import subprocess
 import sys
-from fnmatch import fnmatch
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-CORE_PACKAGES = {"h2o_slam": ["*node*.py", "replay*.py"], "hybrid_vo": ["*node*.py"]}
+import pytest
 
-# Imports each module named on the command line in turn and prints the first one after
-# whose import rclpy is loaded, or nothing.
+REPO = Path(__file__).resolve().parents[1]
+LAYERS = ("core", "io", "ros", "app")
+#: Outside packages each part may import (beyond the standard library and numerical stack).
+FORBIDDEN_EXTERNAL = {
+    "core": ("rclpy", "rosbags", "matplotlib", "yaml", "msg_adapters", "hybrid_vo"),
+    "io": ("msg_adapters", "hybrid_vo"),
+    "ros": ("hybrid_vo",),
+    "app": (),
+}
+#: What each sibling package may import from h2o_slam.
+SIBLING_ALLOWED = {"msg_adapters": ("core",), "hybrid_vo": ("core", "ros")}
+
+
+def _modules(package: str) -> list[tuple[str, Path]]:
+    found = []
+    for path in sorted((REPO / package).rglob("*.py")):
+        parts = path.relative_to(REPO).with_suffix("").parts
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        found.append((".".join(parts), path))
+    return found
+
+
+def _imports(source: str, module: str) -> list[str]:
+    """Every module an import statement in ``source`` names (relative ones resolved)."""
+    names = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            names += [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parent = module.split(".")[: -node.level]
+                base = ".".join(parent + ([base] if base else []))
+            names += [base] + [f"{base}.{alias.name}" for alias in node.names]
+    return names
+
+
+def _layer(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 and parts[0] == "h2o_slam" and parts[1] in LAYERS else None
+
+
+def violations(module: str, source: str) -> list[str]:
+    """The imports of ``module`` (with ``source``) that run against the layering."""
+    found = []
+    top = module.split(".")[0]
+    own = _layer(module)
+    for name in _imports(source, module):
+        root = name.split(".")[0]
+        target = _layer(name)
+        if own is not None:
+            if target is not None and LAYERS.index(target) > LAYERS.index(own):
+                found.append(f"{module} ({own}) imports {name} ({target})")
+            if root in FORBIDDEN_EXTERNAL[own]:
+                found.append(f"{module} ({own}) imports {name}")
+        elif top in SIBLING_ALLOWED and target is not None:
+            if target not in SIBLING_ALLOWED[top]:
+                found.append(f"{module} imports {name} ({target})")
+    return found
+
+
+def test_every_h2o_slam_module_is_in_a_layer() -> None:
+    loose = [m for m, _ in _modules("h2o_slam") if m != "h2o_slam" and _layer(m) is None]
+    assert not loose, f"modules outside core/io/ros/app: {loose}"
+    assert {_layer(m) for m, _ in _modules("h2o_slam")} >= set(LAYERS)
+
+
+@pytest.mark.parametrize("package", ["h2o_slam", "hybrid_vo", "msg_adapters"])
+def test_imports_run_downward(package: str) -> None:
+    found = [v for module, path in _modules(package)
+             for v in violations(module, path.read_text(encoding="utf-8"))]
+    assert not found, "\n".join(found)
+
+
+@pytest.mark.parametrize(
+    ("module", "source"),
+    [
+        ("h2o_slam.core.solver", "from h2o_slam.io.g2o import read_g2o"),
+        ("h2o_slam.core.solver", "def f():\n    import rclpy"),
+        ("h2o_slam.core.tree", "from h2o_slam import ros"),
+        ("h2o_slam.io.g2o", "from ..ros import mapper"),
+        ("h2o_slam.ros.mapper", "from hybrid_vo import world"),
+        ("msg_adapters.gps", "from h2o_slam.io.map_store import load_map"),
+        ("hybrid_vo.frontend", "from h2o_slam.app.replay import replay"),
+    ],
+)
+def test_an_upward_import_is_reported(module: str, source: str) -> None:
+    assert violations(module, source), f"{source!r} in {module} passed"
+
+
+def test_a_downward_import_passes() -> None:
+    source = "from h2o_slam.core import geometry\nfrom ..io.g2o import read_g2o\nimport hybrid_vo"
+    assert violations("h2o_slam.app.replay", source) == []
+
+
+# Imports each module named on the command line in a fresh interpreter, in turn, and prints
+# ``module loaded-name`` for the first forbidden name found in sys.modules afterwards.
 _PROBE = """
 import importlib, sys
-for name in sys.argv[1:]:
+forbidden = sys.argv[1].split(",")
+for name in sys.argv[2:]:
     importlib.import_module(name)
-    if "rclpy" in sys.modules:
-        print(name)
+    hit = [m for m in forbidden if m in sys.modules]
+    if hit:
+        print(name, hit[0])
         break
 """
 
 
-def _core_modules() -> list[str]:
-    names = []
-    for package, allowed in CORE_PACKAGES.items():
-        for path in sorted((REPO / package).rglob("*.py")):
-            if any(fnmatch(path.name, pattern) for pattern in allowed):
-                continue
-            parts = path.relative_to(REPO).with_suffix("").parts
-            if parts[-1] == "__init__":
-                parts = parts[:-1]
-            names.append(".".join(parts))
-    return names
-
-
-def test_core_modules_are_found() -> None:
-    modules = _core_modules()
-    assert "h2o_slam" in modules
-    assert "hybrid_vo" in modules
-
-
-def test_core_modules_do_not_load_rclpy() -> None:
-    modules = _core_modules()
+def _loads_nothing_of(modules: list[str], forbidden: list[str]) -> None:
     proc = subprocess.run(
-        [sys.executable, "-c", _PROBE, *modules],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
+        [sys.executable, "-c", _PROBE, ",".join(forbidden), *modules],
+        cwd=REPO, capture_output=True, text=True, timeout=180, check=False,
     )
-    assert proc.returncode == 0, f"importing the core modules failed:\n{proc.stderr}"
-    culprit = proc.stdout.strip()
-    assert not culprit, f"importing {culprit} loads rclpy; cores must not depend on it"
+    assert proc.returncode == 0, f"importing the modules failed:\n{proc.stderr}"
+    assert not proc.stdout.strip(), f"importing {proc.stdout.strip()} (loaded)"
+
+
+def test_the_core_loads_no_rclpy_files_or_plotting() -> None:
+    core = [m for m, _ in _modules("h2o_slam") if _layer(m) == "core"]
+    _loads_nothing_of(core, ["rclpy", "rosbags", "matplotlib", "h2o_slam.io", "h2o_slam.ros",
+                             "h2o_slam.app", "msg_adapters", "hybrid_vo"])
+
+
+def test_io_and_the_rclpy_free_cores_load_no_rclpy() -> None:
+    io = [m for m, _ in _modules("h2o_slam") if _layer(m) == "io"]
+    vo_core = [m for m, path in _modules("hybrid_vo") if "node" not in path.name]
+    _loads_nothing_of(io + vo_core + ["h2o_slam.ros.mapper"],
+                      ["rclpy", "h2o_slam.app"])

@@ -8,11 +8,11 @@ each; (§IV) on Olson's Manhattan world H₂O converges to 1.596 per constraint,
 2.062; (Table II) the graphs' nodes, edges, loop edges and longest path. Valencia and
 Paris are Google's and not public: the public graphs stand in (see the section).
 
-H₂O is :class:`h2o_slam.solver.H2OSolver` run as the paper's Algorithm 1
-(:func:`h2o_slam.modes.offline_pass`: breadth-first tree, edges by root depth, τ ← 0.99 τ
+H₂O is :class:`h2o_slam.core.solver.H2OSolver` run as the paper's Algorithm 1
+(:func:`h2o_slam.core.modes.offline_pass`: breadth-first tree, edges by root depth, τ ← 0.99 τ
 per pass, rotation steps capped at π/8), each ``relax`` call timed on its own. TORO is
-:func:`h2o_slam.toro.solve_toro` (a colleague's implementation of Grisetti et al. 2007).
-Energy is the paper's (1)–(2), ``Σ (f − k)ᵀ S (f − k)`` = :func:`h2o_slam.graph.chi2`,
+:func:`h2o_slam.core.toro.solve_toro` (a colleague's implementation of Grisetti et al. 2007).
+Energy is the paper's (1)–(2), ``Σ (f − k)ᵀ S (f − k)`` = :func:`h2o_slam.core.graph.chi2`,
 divided by the number of constraints.
 """
 
@@ -25,10 +25,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from results_md import command
 
-from h2o_slam.covariance_variants import with_variant
-from h2o_slam.g2o import read_g2o
-from h2o_slam.graph import EdgeKind, PoseGraph, chi2
-from h2o_slam.modes import build_solver, offline_order, solve_exact, solve_offline
+from h2o_slam.core.covariance_variants import with_variant
+from h2o_slam.core.graph import EdgeKind, PoseGraph, chi2
+from h2o_slam.core.modes import build_solver, offline_order, solve_exact, solve_offline
+from h2o_slam.io.g2o import read_g2o
 from repro.context import Context, verdict
 
 TITLE = "Grimes, Anguelov & LeCun 2010 (hybrid Hessians): energy vs time, time per " \
@@ -123,7 +123,7 @@ def run_h2o(graph: PoseGraph, d_max: int | None, passes: int) -> tuple[Run, list
 
 
 def run_toro(graph: PoseGraph, iterations: int) -> Run:
-    from h2o_slam.toro import solve_toro
+    from h2o_slam.core.toro import solve_toro
 
     out, history = solve_toro(graph, iterations=iterations)
     m = graph.num_edges
@@ -215,9 +215,9 @@ def gps_experiment(passes: int, poses: int) -> GpsResult:
     """The paper's GPS claim on a synthetic Manhattan world (no public graph has GPS):
     H₂O offline at D_max=200 with GPS edges in batches of 30, against the exact optimum;
     TORO is offered the same graph."""
-    from h2o_slam.errors import InputError
-    from h2o_slam.synthetic import manhattan
-    from h2o_slam.toro import solve_toro
+    from h2o_slam.core.errors import InputError
+    from h2o_slam.core.toro import solve_toro
+    from h2o_slam.io.synthetic import manhattan
 
     graph = manhattan(poses, seed=7, gps_every=GPS_EVERY).graph
     m = graph.num_edges
@@ -238,7 +238,7 @@ def gps_experiment(passes: int, poses: int) -> GpsResult:
 
 def gps_text(g: GpsResult) -> str:
     return (f"**GPS** (Fig. 3d, the abstract's claim): a synthetic Manhattan world "
-            f"(`h2o_slam.synthetic.manhattan`, {g.nodes} poses, {g.edges} edges of which "
+            f"(`h2o_slam.io.synthetic.manhattan`, {g.nodes} poses, {g.edges} edges of which "
             f"{g.gps} GPS fixes, one every {g.every} poses, σ 1 m). H₂O offline, D_max=200, "
             f"GPS in batches of 30, {g.passes} passes in {g.h2o_s:.1f} s: energy per "
             f"constraint {_g(g.h2o)} against the optimum's {_g(g.optimum)} "
@@ -392,7 +392,7 @@ Protocol and its differences from the paper's:
   its energies are on another scale than the paper's 1.596 / 2.062. kitti_00 stands in for
   Valencia (an urban drive with few loop closures and long paths){city}.
 - **Solvers.** H₂O: the paper's Algorithm 1 from the tree initialization, {passes} passes,
-  τ₀ = 1 decaying 0.99 per pass, no GPS edges (as Fig. 5). TORO: `h2o_slam/toro.py` (a
+  τ₀ = 1 decaying 0.99 per pass, no GPS edges (as Fig. 5). TORO: `h2o_slam/core/toro.py` (a
   colleague's Python/numba implementation of Grisetti et al. 2007, not Google's C++ TORO the
   paper ran), {toro} iterations from the same tree initialization.
 - **Times.** Wall seconds of the solver alone (χ² evaluation excluded), one process, this

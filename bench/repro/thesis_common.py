@@ -8,9 +8,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from h2o_slam.graph import EdgeKind, PoseGraph
-from h2o_slam.modes import build_solver, offline_order, offline_pass
-from h2o_slam.solver import SolverConfig
+from h2o_slam.core.graph import EdgeKind, PoseGraph
+from h2o_slam.core.modes import build_solver, offline_order, offline_pass
+from h2o_slam.core.solver import SolverConfig
 
 
 @dataclass

@@ -12,11 +12,11 @@ from typing import Any
 import numpy as np
 import solvers
 
-from h2o_slam import geometry as geo
-from h2o_slam.compiled import warm_up
-from h2o_slam.g2o import read_g2o
-from h2o_slam.graph import PoseGraph, chi2
-from h2o_slam.modes import arrivals, build_solver, solve_exact
+from h2o_slam.core import geometry as geo
+from h2o_slam.core.compiled import warm_up
+from h2o_slam.core.graph import PoseGraph, chi2
+from h2o_slam.core.modes import arrivals, build_solver, solve_exact
+from h2o_slam.io.g2o import read_g2o
 from repro.context import Context, verdict
 from repro.thesis_common import num, offline_trace, table
 
@@ -212,7 +212,7 @@ def _report(parts: list[str], found: dict[str, dict[str, Outcome]], missing: lis
         "package's default mode), GTSAM Levenberg–Marquardt (bench/solvers.py settings: "
         "100 iterations, tolerances 1e-10, node 0 held by a prior) and GTSAM iSAM2 (default "
         "ISAM2Params, one update per pose, each new pose initialized at its start pose). χ² "
-        "by `h2o_slam.graph.chi2` on the noisy graph; time is solver time only.\n",
+        "by `h2o_slam.core.graph.chi2` on the noisy graph; time is solver time only.\n",
     ]
     if missing:
         out.append(f"Missing graphs (skipped): {', '.join(missing)}.\n")

@@ -1,0 +1,398 @@
+"""``h2o-solve``: optimize a g2o pose graph with H₂O (or LAGO) and write the solution and a report.
+
+    h2o-solve INPUT.g2o --output OUT.g2o [--mode exact|offline|online] [--passes N]
+              [--tolerance T] [--init tree|input|lago] [--solver h2o|lago] [--d-max N]
+              [--budget-ms X] [--gps-batch-size N] [--gps-every K --gps-sigma S]
+              [--metric h2o|gtsam|g2o] [--report REPORT.json] [--trace TRACE.json]
+              [--idle-s S] [--samples N] [--period-ms P] [--quiet]
+
+The work is :func:`solve_file`; this module's ``main`` only parses arguments, prints, and maps
+errors to a one-line message and an exit code (2: the command line, 1: the input).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from h2o_slam.app.cli.common import (
+    EXIT_INPUT,
+    OneLineParser,
+    ProgressLine,
+    integer,
+    number,
+    unwritable_file,
+    usage_error,
+)
+from h2o_slam.core.chi2_metrics import METRICS, all_chi2
+from h2o_slam.core.compiled import warm_up
+from h2o_slam.core.errors import H2OError, InputError
+from h2o_slam.core.graph import PoseGraph
+from h2o_slam.core.modes import (
+    EXACT_ITERATIONS,
+    INITS,
+    Progress,
+    SolveResult,
+    sample_points,
+    solve_exact,
+    solve_lago,
+    solve_offline,
+    solve_online,
+)
+from h2o_slam.core.online import OnlineConfig
+from h2o_slam.core.solver import SolverConfig
+from h2o_slam.io.g2o import read_g2o, write_g2o
+from h2o_slam.io.synthetic import add_gps
+
+MODES = ("exact", "offline", "online")
+SOLVERS = ("h2o", "lago")
+DEFAULT_PASSES = {"offline": 10, "online": 0, "exact": EXACT_ITERATIONS}
+PROG = "h2o-solve"
+
+
+@dataclass(frozen=True)
+class SolveOptions:
+    """How :func:`solve_file` solves.
+
+    Attributes:
+        mode: ``exact`` (the default: Gauss–Newton to convergence after the tree start, the
+            best map), ``offline`` or ``online``.
+        passes: offline passes (offline mode), offline passes after the online pass (online),
+            or the most Gauss–Newton iterations (exact); ``None`` takes the mode's default.
+        tolerance: exact mode: stop when an iteration lowers χ² by less than this fraction.
+        init: ``tree`` (the thesis' start: tree edges concatenated from the root), ``input``
+            (the file's vertices, or its odometry chain) or ``lago`` (planar graphs); online
+            mode grows its tree from the arriving edges instead.
+        solver: ``h2o`` or ``lago`` (the linear approximation alone; ``mode`` is ignored).
+        d_max: most nodes solved for per edge (interpolated solving); ``None``: unlimited.
+        budget_ms: online mode: time per arriving pose; ``None``: relax every edge in full.
+        gps_batch_size: GPS edges relaxed together.
+        gps_every, gps_sigma_m: add a GPS edge every ``gps_every`` poses at the graph's exact
+            optimum plus noise of ``gps_sigma_m`` (0: none).
+        idle_s: online mode: seconds of budgeted idle steps after the last arrival (the
+            robot stops; the exact solver beside the updates finishes its work).
+        samples: online mode: sample χ² of the edges so far at this many poses spread over
+            the stream and as many after loop closures (0: none).
+        period_ms: online mode: one pose arrives every this many ms, with idle steps between
+            (a robot's keyframe rate); 0: each as soon as the last callback returns.
+    """
+
+    mode: str = "exact"
+    passes: int | None = None
+    tolerance: float = SolverConfig.exact_tolerance
+    init: str = "tree"
+    solver: str = "h2o"
+    d_max: int | None = None
+    budget_ms: float | None = None
+    gps_batch_size: int = 30
+    gps_every: int = 0
+    gps_sigma_m: float = 1.0
+    idle_s: float = 1.0
+    samples: int = 0
+    period_ms: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name, value, allowed in (("solver", self.solver, SOLVERS),
+                                     ("mode", self.mode, MODES), ("init", self.init, INITS)):
+            if value not in allowed:
+                raise InputError(f"unknown {name} {value!r}; choose one of {', '.join(allowed)}")
+        if self.passes is not None and self.passes < 0:
+            raise InputError("--passes must be non-negative")
+        if not 0.0 <= self.tolerance < 1.0:
+            raise InputError("--tolerance must be in [0, 1)")
+        if self.d_max is not None and self.d_max < 1:
+            raise InputError("--d-max must be at least 1")
+        if self.budget_ms is not None and not self.budget_ms > 0.0:
+            raise InputError("--budget-ms must be positive")
+        if self.budget_ms is not None and self.mode != "online":
+            raise InputError("--budget-ms applies to --mode online only")
+        if self.gps_batch_size < 1:
+            raise InputError("--gps-batch-size must be at least 1")
+        if not 0.0 <= self.idle_s < math.inf:
+            raise InputError("--idle-s must be a non-negative number of seconds")
+        if self.samples < 0:
+            raise InputError("--samples must be non-negative")
+        if not 0.0 <= self.period_ms < math.inf:
+            raise InputError("--period-ms must be a non-negative number of milliseconds")
+        if self.period_ms and (self.mode != "online" or self.budget_ms is None):
+            raise InputError("--period-ms applies to --mode online with --budget-ms only")
+
+
+@dataclass
+class SolveReport:
+    """What ``--report`` writes (JSON)."""
+
+    input: str
+    solver: str
+    mode: str
+    init: str | None
+    passes: int
+    nodes: int
+    edges: int
+    chi2_initial: float
+    chi2_final: float
+    chi2_per_pass: list[float]
+    wall_s: float
+    metric: str = "h2o"
+    chi2_metrics: dict[str, dict[str, float]] | None = None
+    iterations: int | None = None
+    max_iterations: int | None = None
+    tolerance: float | None = None
+    d_max: int | None = None
+    budget_ms: float | None = None
+    per_callback_ms: dict[str, float] | None = None
+    overruns: int | None = None
+    deferred_edges: int | None = None
+    gps_edges_added: int = 0
+    converged: bool | None = None
+    chi2_end_of_stream: float | None = None
+    chi2_after_idle: float | None = None
+    idle_s: float | None = None
+    idle_steps: int | None = None
+    period_ms: float | None = None
+    idle_steps_between: int | None = None
+    updates: int | None = None
+    exact: dict[str, Any] | None = None
+    samples: list[list[float]] | None = None
+
+
+def solve_file(
+    input_path: Path, output_path: Path, options: SolveOptions | None = None,
+    metric: str = "h2o", progress: Progress | None = None,
+) -> tuple[SolveReport, SolveResult]:
+    """Read ``input_path``, solve it as ``options`` say, write the solution to ``output_path``.
+
+    The report's ``chi2_initial``, ``chi2_final`` and ``chi2_per_pass`` are in ``metric``
+    (see :mod:`h2o_slam.core.chi2_metrics`; the solvers minimize ``h2o``); ``chi2_metrics``
+    carries the initial and final χ² in all three. ``progress(step, chi2)`` is called after
+    each offline pass.
+
+    Raises:
+        H2OError: the input cannot be read or solved (the message names file and line).
+        OSError: the files cannot be read or written.
+    """
+    opt = options or SolveOptions()
+    graph = read_g2o(input_path)
+    added = 0
+    if opt.gps_every:
+        optimum = solve_exact(graph)
+        before = graph.num_edges
+        graph = add_gps(graph, optimum.t, opt.gps_every, opt.gps_sigma_m)
+        added = graph.num_edges - before
+    passes = DEFAULT_PASSES[opt.mode] if opt.passes is None else opt.passes
+    # Start-up, as a node's: the compiled kernels load from their cache (or compile) before
+    # the clock starts, so wall_s is the solve (0.5 s of loading on the 2-core machine).
+    warm_up()
+    start = time.perf_counter()
+    try:
+        result = _solve(graph, opt, passes, progress)
+    except InputError as err:  # e.g. LAGO refusing a 3-D graph: say which file
+        raise InputError(f"{input_path}: {err}") from None
+    wall_s = time.perf_counter() - start
+    write_g2o(output_path, graph, result.R, result.t)
+    lago = opt.solver == "lago"
+    online = not lago and opt.mode == "online"
+    exact = not lago and opt.mode == "exact"
+    budget = opt.budget_ms
+    start_R, start_t = _start(graph, result)
+    metrics = {"initial": all_chi2(graph, start_R, start_t),
+               "final": all_chi2(graph, result.R, result.t)}
+    # The last entry is the reported solution's χ² in ``metric``; the others are the
+    # solver's own (it minimizes h2o's).
+    per_pass = result.chi2_per_pass[:-1] + [metrics["final"][metric]] \
+        if result.chi2_per_pass else []
+    report = SolveReport(
+        input=str(input_path), solver=opt.solver,
+        mode="lago" if lago else opt.mode,
+        # LAGO needs no starting estimate; online mode grows its tree from the arrivals.
+        init=None if lago else ("tree" if online else opt.init),
+        passes=0 if lago else (len(result.chi2_per_pass) if exact else passes),
+        nodes=graph.num_nodes, edges=graph.num_edges,
+        chi2_initial=metrics["initial"][metric], chi2_final=metrics["final"][metric],
+        chi2_per_pass=per_pass, wall_s=wall_s, metric=metric, chi2_metrics=metrics,
+        iterations=len(result.chi2_per_pass) if exact else None,
+        max_iterations=passes if exact else None, tolerance=opt.tolerance if exact else None,
+        d_max=opt.d_max, budget_ms=budget,
+        per_callback_ms=_percentiles(result.per_callback_ms) if online else None,
+        overruns=(sum(t > budget for t in result.per_callback_ms)
+                  if online and budget is not None else None),
+        deferred_edges=result.deferred_edges if online else None,
+        gps_edges_added=added, converged=result.converged,
+        chi2_end_of_stream=result.chi2_end_of_stream, chi2_after_idle=result.chi2_after_idle,
+        idle_s=opt.idle_s if online else None, idle_steps=result.idle_steps if online else None,
+        period_ms=opt.period_ms if online else None,
+        idle_steps_between=result.idle_steps_between if online else None,
+        updates=result.updates if online else None,
+        exact=asdict(result.exact) if result.exact is not None else None,
+        samples=[list(sample) for sample in result.samples] if online else None,
+    )
+    return report, result
+
+
+def _start(graph: PoseGraph, result: SolveResult) -> tuple[np.ndarray, np.ndarray]:
+    """The starting estimate the solve reported ``chi2_initial`` for."""
+    return result.start if result.start is not None else (graph.R, graph.t)
+
+
+def _solve(graph: PoseGraph, opt: SolveOptions, passes: int,
+           progress: Progress | None) -> SolveResult:
+    if opt.solver == "lago":
+        return solve_lago(graph)
+    config = SolverConfig(gps_batch_size=opt.gps_batch_size, exact_tolerance=opt.tolerance)
+    if opt.mode == "offline":
+        return solve_offline(graph, passes, config, init=opt.init, d_max=opt.d_max,
+                             progress=progress)
+    if opt.mode == "online":
+        budget_s = None if opt.budget_ms is None else opt.budget_ms / 1e3
+        # Unbudgeted, the exact solves run inline on their schedule: no worker is needed.
+        background = "process" if budget_s is not None and budget_s < 1.0 else "inline"
+        online = OnlineConfig(d_max=opt.d_max, background=background)
+        return solve_online(graph, passes, config, budget_s, online,
+                            trace_every=max(1, graph.num_nodes // 200), idle_s=opt.idle_s,
+                            sample_nodes=sample_points(graph, opt.samples),
+                            period_s=opt.period_ms / 1e3)
+    return solve_exact(graph, passes, config, init=opt.init)
+
+
+def _percentiles(times_ms: list[float]) -> dict[str, float]:
+    t = np.asarray(times_ms) if times_ms else np.zeros(1)
+    return {"mean": float(t.mean()), "p99": float(np.percentile(t, 99)), "max": float(t.max())}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``h2o-solve``."""
+    p = OneLineParser(
+        prog=PROG,
+        description="Optimize a g2o pose graph with H₂O (hybrid-Hessian SLAM) or LAGO.",
+    )
+    p.add_argument("input", type=Path, help="input graph (.g2o)")
+    p.add_argument("--output", "-o", type=Path, required=True,
+                   help="where to write the solution (.g2o, a VERTEX line per pose)")
+    p.add_argument("--mode", choices=MODES, default="exact",
+                   help="exact: damped Gauss-Newton on all edges to convergence, from the "
+                        "tree start (the best map); offline: Algorithm 1 passes; online: "
+                        "pose by pose (default: exact)")
+    p.add_argument("--passes", type=integer(0), default=None,
+                   help="exact: most iterations (default "
+                        f"{EXACT_ITERATIONS}; a warning when reached); offline passes "
+                        f"(default {DEFAULT_PASSES['offline']}); online: extra offline passes "
+                        "after the online pass (default 0)")
+    p.add_argument("--tolerance", type=number(0.0, 1.0), default=SolverConfig.exact_tolerance,
+                   help="exact: converged when an iteration lowers chi2 by less than this "
+                        f"fraction (default {SolverConfig.exact_tolerance:g})")
+    p.add_argument("--solver", choices=SOLVERS, default="h2o",
+                   help="h2o (default) or lago: the linear approximation alone "
+                        "(planar graphs; --mode, --passes and --init are ignored)")
+    p.add_argument("--init", choices=INITS, default="tree",
+                   help="starting estimate: tree (tree edges concatenated from the root, as in "
+                        "the thesis), input (the file's vertices, or its odometry chain when "
+                        "it has none) or lago (planar graphs); default: tree")
+    p.add_argument("--d-max", type=integer(1), default=None,
+                   help="most nodes solved for per edge (interpolated solving); default: all")
+    p.add_argument("--budget-ms", type=number(0.0, math.inf, low_open=True), default=None,
+                   help="online mode: time per arriving pose in ms; default: no limit")
+    p.add_argument("--gps-batch-size", type=integer(1), default=30,
+                   help="GPS edges relaxed together (default 30)")
+    p.add_argument("--gps-every", type=integer(0), default=0,
+                   help="add a GPS edge every K poses, at the graph's exact optimum plus noise")
+    p.add_argument("--gps-sigma", type=number(0.0, math.inf), default=1.0,
+                   help="noise (m, per axis) of the GPS edges --gps-every adds (default 1)")
+    p.add_argument("--metric", choices=METRICS, default="h2o",
+                   help="chi2 convention of chi2_initial, chi2_final and chi2_per_pass: h2o "
+                        "(this package's [t; Log R]), gtsam (2 x GTSAM's graph error) or g2o "
+                        "(g2o's chi2); chi2_metrics always has all three (default: h2o)")
+    p.add_argument("--idle-s", type=number(0.0, math.inf), default=1.0,
+                   help="online mode: seconds of budgeted idle steps after the last pose "
+                        "(the robot stops; default 1)")
+    p.add_argument("--samples", type=integer(0), default=0,
+                   help="online mode: sample chi2 of the edges so far at N poses over the "
+                        "stream and N after loop closures, into the report (default 0)")
+    p.add_argument("--period-ms", type=number(0.0, math.inf), default=0.0,
+                   help="online mode with --budget-ms: one pose arrives every this many ms, "
+                        "idle steps between (a robot's keyframe rate); default 0: each pose "
+                        "as soon as the last callback returns (the worst case)")
+    p.add_argument("--report", type=Path, default=None, help="write a JSON report here")
+    p.add_argument("--trace", type=Path, default=None,
+                   help="online mode: write per-callback times and chi2 samples (JSON) here")
+    p.add_argument("--quiet", "-q", action="store_true",
+                   help="no progress line on stderr (printed once a second for solves "
+                        "longer than a second)")
+    return p
+
+
+def _options(args: argparse.Namespace) -> SolveOptions:
+    return SolveOptions(
+        mode=args.mode, passes=args.passes, tolerance=args.tolerance, init=args.init,
+        solver=args.solver, d_max=args.d_max, budget_ms=args.budget_ms,
+        gps_batch_size=args.gps_batch_size, gps_every=args.gps_every,
+        gps_sigma_m=args.gps_sigma, idle_s=args.idle_s, samples=args.samples,
+        period_ms=args.period_ms,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``h2o-solve``; returns the exit code (2: the command line, 1: the
+    input)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        options = _options(args)  # options that do not go together
+    except InputError as err:
+        return usage_error(PROG, str(err))
+    # Every output is checked before the solve, which may take minutes.
+    for option, path in (("--output", args.output), ("--report", args.report),
+                         ("--trace", args.trace)):
+        problem = unwritable_file(option, path)
+        if problem is not None:
+            return usage_error(PROG, problem)
+    mode = "lago" if options.solver == "lago" else options.mode
+    with ProgressLine(PROG, enabled=not args.quiet) as line:
+
+        def progress(step: int, chi2: float) -> None:
+            line.status = f"{mode}: pass {step}, chi2 {chi2:.6g}"
+
+        line.status = f"{mode}: solving {args.input}"
+        try:
+            report, result = solve_file(args.input, args.output, options, args.metric,
+                                        progress)
+        except H2OError as err:
+            print(f"{PROG}: {err}", file=sys.stderr)
+            return EXIT_INPUT
+        except OSError as err:
+            print(f"{PROG}: {err.filename or args.input}: {err.strerror or err}",
+                  file=sys.stderr)
+            return EXIT_INPUT
+    if report.mode == "exact" and not result.converged and report.max_iterations:
+        rate = _last_decrease(result)
+        print(f"{PROG}: warning: exact mode stopped at its cap of {report.max_iterations} "
+              f"iterations, chi2 still falling ({rate:.2g} of it in the last); raise "
+              "--passes or --tolerance", file=sys.stderr)
+    text = json.dumps(asdict(report), indent=2)
+    if args.report is not None:
+        args.report.write_text(text + "\n")
+    if args.trace is not None:
+        trace = {"callback_ms": result.per_callback_ms, "required_ms": result.required_ms,
+                 "chi2_trace": [list(sample) for sample in result.chi2_trace]}
+        args.trace.write_text(json.dumps(trace) + "\n")
+    print(text)
+    return 0
+
+
+def _last_decrease(result: SolveResult) -> float:
+    """Relative χ² decrease of the last iteration."""
+    chain = [result.chi2_initial, *result.chi2_per_pass]
+    if len(chain) < 2 or chain[-2] <= 0.0:
+        return 0.0
+    return (chain[-2] - chain[-1]) / chain[-2]
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,81 @@
+"""The solver's edge table: every edge's kind, endpoints, measurement, information and
+whitening, in growable arrays that vector code reads as views.
+
+An edge's whitening ``W`` (``Wᵀ W = S``, its information in the solver's coordinates) is
+computed once, when the edge is stored: every update that linearizes the edge uses it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from h2o_slam.core.geometry import Array
+
+
+def whitening(info: Array, dof: np.ndarray) -> Array:
+    """``W`` with ``Wᵀ W = S`` for information matrices ``S`` restricted to ``dof``."""
+    S = info[..., dof[:, None], dof[None, :]]
+    if S.ndim == 2:
+        try:  # The common case, a positive definite matrix: Cholesky is the cheap factor.
+            return np.asarray(np.linalg.cholesky(S).T, dtype=float)
+        except np.linalg.LinAlgError:
+            pass  # semi-definite (a GPS edge's rotation rows): the eigen factor below
+    lam, U = np.linalg.eigh(S)
+    return np.sqrt(np.maximum(lam, 0.0))[..., :, None] * np.swapaxes(U, -1, -2)
+
+
+class EdgeTable:
+    """Growable arrays of edges (amortized O(1) appends, array views for vector work)."""
+
+    def __init__(self, p: int, capacity: int = 64) -> None:
+        self.m = 0
+        self.kind = np.zeros(capacity, dtype=np.int8)
+        self.a = np.zeros(capacity, dtype=np.int64)
+        self.b = np.zeros(capacity, dtype=np.int64)
+        self.meas_R = np.zeros((capacity, 3, 3))
+        self.meas_t = np.zeros((capacity, 3))
+        self.info = np.zeros((capacity, 6, 6))
+        self.W = np.zeros((capacity, p, p))
+
+    def append(
+        self, kind: int, a: int, b: int, meas_R: Array, meas_t: Array, info: Array,
+        dof: np.ndarray,
+    ) -> int:
+        """Store one edge and return its index."""
+        self._reserve(self.m + 1)
+        e = self.m
+        self.kind[e], self.a[e], self.b[e] = kind, a, b
+        self.meas_R[e], self.meas_t[e], self.info[e] = meas_R, meas_t, info
+        self.W[e] = whitening(self.info[e], dof)
+        self.m += 1
+        return e
+
+    def extend(
+        self, kind: np.ndarray, a: np.ndarray, b: np.ndarray, meas_R: Array, meas_t: Array,
+        info: Array, dof: np.ndarray,
+    ) -> None:
+        """Store many edges at once (arrays with one row per edge), as :meth:`append` would
+        one by one."""
+        k = len(kind)
+        end = self.m + k
+        self._reserve(end)
+        s = slice(self.m, end)
+        self.kind[s], self.a[s], self.b[s] = kind, a, b
+        self.meas_R[s], self.meas_t[s], self.info[s] = meas_R, meas_t, info
+        S = self.info[s][:, dof[:, None], dof[None, :]]
+        try:  # all positive definite, the common case: the factor append's Cholesky gives
+            self.W[s] = np.swapaxes(np.linalg.cholesky(S), -1, -2)
+        except np.linalg.LinAlgError:
+            self.W[s] = [whitening(x, dof) for x in self.info[s]]
+        self.m = end
+
+    def _reserve(self, size: int) -> None:
+        """Room for ``size`` edges: capacity at least doubles, so appends stay O(1)."""
+        if size <= len(self.kind):
+            return
+        capacity = max(size, 2 * len(self.kind))
+        for name in ("kind", "a", "b", "meas_R", "meas_t", "info", "W"):
+            old = getattr(self, name)
+            grown = np.zeros((capacity, *old.shape[1:]), dtype=old.dtype)
+            grown[: self.m] = old[: self.m]
+            setattr(self, name, grown)

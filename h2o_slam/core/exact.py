@@ -1,0 +1,312 @@
+"""Exact mode: Gauss–Newton on all edges at once, as the batch of every edge (thesis 3.3.8).
+
+Solved in world coordinates, where ``JᵀJ`` has the sparsity of the graph (the tree's local
+coordinates would make every edge's domain a dense clique), then mapped to the tree's local
+coordinates by the exact linear change of variables, so that the step is the solver's own.
+
+* :class:`ExactSystem` — linearizes every edge of an :class:`~h2o_slam.core.solver.H2OSolver`
+  and solves the (damped) normal equations; it keeps the sparsity pattern and the
+  factorization's symbolic analysis while the edges and the free nodes stay
+  (:class:`WorldSystem`).
+* :func:`converge_exact` — Levenberg-damped Gauss–Newton to convergence: what
+  ``h2o-solve --mode exact`` runs and what the anytime back end
+  (:mod:`h2o_slam.core.converge`) runs beside the budgeted updates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from h2o_slam.core import geometry as geo
+from h2o_slam.core.geometry import Array
+from h2o_slam.core.graph import EARTH
+from h2o_slam.core.jacobians import endpoint_jacobians
+from h2o_slam.core.solver import H2OSolver
+from h2o_slam.core.spd import SPDFactor
+
+
+@dataclass(frozen=True)
+class WorldLinearization:
+    """All edges linearized at one estimate, in world coordinates (exact mode): the world
+    poses, the normal equations' values in ``system``'s pattern, and the χ² there."""
+
+    R: Array
+    x: Array
+    system: WorldSystem
+    data: Array  # H = JᵀJ, undamped
+    g: Array  # Jᵀr
+    chi2: float
+
+
+class ExactSystem:
+    """The Gauss–Newton system of all of ``solver``'s edges; see the module docstring."""
+
+    def __init__(self, solver: H2OSolver) -> None:
+        self.solver = solver
+        self._world: WorldSystem | None = None
+
+    def linearize(self) -> WorldLinearization:
+        """Every edge linearized at the solver's current estimate."""
+        R, x = self.solver.world_poses()
+        system, J, r = self._system(R, x)
+        data, g = system.assemble(J, r)
+        return WorldLinearization(R, x, system, data, g, float(np.sum(r * r)))
+
+    def step(self, damping: float = 0.0, lin: WorldLinearization | None = None
+             ) -> tuple[Array, np.ndarray]:
+        """The Gauss–Newton step of all edges as a local step per node, without applying it:
+        the batch of every edge in the tree's coordinates (what :meth:`H2OSolver.relax_batch`
+        takes, to first order).
+
+        ``damping`` adds ``damping · diag(H)`` (Levenberg–Marquardt). ``lin``: the
+        linearization at the current estimate, when the caller has it.
+
+        Returns:
+            ``(x, nodes)``: the local step ``(len(nodes), p)`` for the nodes that move.
+        """
+        lin = self.linearize() if lin is None else lin
+        step = self._world_step(lin, damping)
+        free, dof = lin.system.free, self.solver.dof
+        return self._world_to_local(lin.R, lin.x, step)[:, dof][free], free
+
+    def move(self, lin: WorldLinearization, damping: float = 0.0) -> None:
+        """Take the step from ``lin`` in world coordinates, each pose on its own
+        (``R ← Exp(ω) R``, ``x ← x + δx``), and rebuild the tree's local transforms from the
+        new poses.
+
+        The same step as :meth:`step` to first order, but applied in the tree's coordinates
+        a rotation near the root swings its whole subtree along an arc, not the tangent the
+        linearization saw: from a far start (an odometry chain over 10,000 poses) those
+        steps were refused, the damping rose and 100 iterations ended 860× above the optimum
+        that world-coordinate steps reach in a dozen.
+        """
+        step = self._world_step(lin, damping)
+        # set_world_poses renormalizes the local rotations it derives.
+        self.solver.tree.set_world_poses(geo.so3_exp(step[:, 3:]) @ lin.R, lin.x + step[:, :3])
+
+    def _world_step(self, lin: WorldLinearization, damping: float) -> Array:
+        """The damped Gauss–Newton step ``(δx, ω)`` of every node, ``(n, 6)`` (zero where held)."""
+        solver, system = self.solver, lin.system
+        step = np.zeros((solver.num_nodes, 6))
+        step[np.ix_(system.free, solver.dof)] = -system.solve(
+            system.damped(lin.data, damping), lin.g).reshape(len(system.free), solver.p)
+        return step
+
+    def normal_equations(self) -> tuple[sp.csc_matrix, Array, np.ndarray]:
+        """``(H, g, free)`` at the current estimate: the full symmetric ``H = JᵀJ`` and
+        ``g = Jᵀr`` over the free nodes' world perturbations (node-major, ``p`` per node),
+        and the free nodes."""
+        system, J, r = self._system(*self.solver.world_poses())
+        data, g = system.assemble(J, r)
+        return system.matrix(data), g, system.free
+
+    def _system(self, R: Array, x: Array) -> tuple[WorldSystem, Array, Array]:
+        """The (kept) system, the whitened Jacobians ``[J_a | J_b]`` of every edge w.r.t.
+        world perturbations of its endpoints, shape ``(m, p, 2p)``, and the whitened
+        residuals ``(m, p)``."""
+        s = self.solver
+        kind, a, b = s.kind, s.a, s.b
+        glob = a == EARTH
+        a_idx = np.where(glob, 0, a)
+        Ra = np.where(glob[:, None, None], np.eye(3), R[a_idx])
+        xa = np.where(glob[:, None], 0.0, x[a_idx])
+        e, Ja, Jb = endpoint_jacobians(kind, Ra, xa, R[b], x[b], s.meas_R, s.meas_t)
+        dof = s.dof
+        r = np.einsum("mij,mj->mi", s.W, e[:, dof])
+        J = s.W @ np.concatenate([Ja[:, dof[:, None], dof[None, :]],
+                                  Jb[:, dof[:, None], dof[None, :]]], axis=2)
+        free = self._free_nodes(a, b)
+        system = self._world
+        if system is None or not system.fits(a, b, free, s.num_nodes):
+            system = self._world = WorldSystem(a, b, free, s.num_nodes, s.p)
+        return system, J, r
+
+    def _free_nodes(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        # A subtree top moves only if some edge's root is the earth: a global edge into its
+        # subtree, or a relative edge to another subtree. Otherwise it holds the gauge.
+        tree, n = self.solver.tree, self.solver.num_nodes
+        tops = tree.tops()
+        moved = np.zeros(n, dtype=bool)
+        glob = a == EARTH
+        moved[tops[b[glob]]] = True
+        rel = ~glob
+        cross = tops[a[rel]] != tops[b[rel]]
+        moved[tops[a[rel][cross]]] = True
+        moved[tops[b[rel][cross]]] = True
+        is_top = tree.parent[:n] == EARTH
+        return np.flatnonzero(~is_top | moved)
+
+    def _world_to_local(self, R: Array, x: Array, step: Array) -> Array:
+        """Map world perturbations ``(δx, ω)`` of every node to local ``(δt, δθ)``.
+
+        From ``ω_n = ω_p + R_n δθ_n`` and ``δx_n = δx_p − [x_n − x_p]× ω_p + R_p δt_n``.
+        """
+        parent = self.solver.tree.parent[: self.solver.num_nodes]
+        top = parent == EARTH
+        p = np.where(top, 0, parent)
+        dx_p = np.where(top[:, None], 0.0, step[p, :3])
+        w_p = np.where(top[:, None], 0.0, step[p, 3:])
+        R_p = np.where(top[:, None, None], np.eye(3), R[p])
+        x_p = np.where(top[:, None], 0.0, x[p])
+        moved = step[:, :3] - dx_p + np.cross(x - x_p, w_p)
+        out = np.empty_like(step)
+        out[:, :3] = np.einsum("nji,nj->ni", R_p, moved)
+        out[:, 3:] = np.einsum("nji,nj->ni", R, step[:, 3:] - w_p)
+        return out
+
+
+def damped_step(system: ExactSystem, lin: WorldLinearization, damping: float
+                ) -> tuple[float | None, WorldLinearization]:
+    """Take one exact Gauss–Newton step from the linearization ``lin`` (at the solver's
+    estimate), raising the Levenberg damping until χ² does not rise.
+
+    Returns the damping to use next (None when no step helps) and the linearization at the
+    new estimate (``lin`` when none): its χ² scores the step, its system gives the next one.
+    """
+    solver = system.solver
+    saved_R = solver.tree.R.copy()
+    saved_t = solver.tree.t.copy()
+    for _ in range(12):
+        system.move(lin, damping)
+        new = system.linearize()
+        if np.isfinite(new.chi2) and new.chi2 <= lin.chi2:
+            return damping / 10.0 if damping > 1e-9 else 0.0, new
+        solver.tree.R[:] = saved_R
+        solver.tree.t[:] = saved_t
+        damping = max(1e-6, damping * 10.0)
+    return None, lin
+
+
+def converge_exact(solver: H2OSolver, iterations: int) -> tuple[list[float], bool]:
+    """Damped Gauss–Newton on all of the solver's edges until the relative χ² decrease falls
+    to ``config.exact_tolerance`` or no step helps (converged), or ``iterations`` run out.
+
+    Returns the χ² after each iteration (the first entry is the start) and whether it
+    converged.
+    """
+    tol = solver.config.exact_tolerance
+    system = ExactSystem(solver)
+    lin = system.linearize()
+    history = [lin.chi2]
+    damping = 0.0
+    for _ in range(iterations):
+        current = history[-1]
+        damping_next, lin = damped_step(system, lin, damping)
+        if damping_next is None:
+            return history, True
+        damping = damping_next
+        history.append(lin.chi2)
+        if current - lin.chi2 <= tol * max(current, 1e-300):
+            return history, True
+    return history, False
+
+
+class WorldSystem:
+    """The Gauss–Newton normal equations of all edges in world coordinates, for fixed edges
+    and free nodes: ``H = JᵀJ`` (upper triangle, CSC) and ``g = Jᵀr``.
+
+    Built once per set of edges and free nodes and reused by every iteration and damping
+    retry: the sparsity pattern, the map that scatters every edge's ``[J_a | J_b]ᵀ[J_a |
+    J_b]`` into it (one ``np.bincount``, duplicates summed), and the factorization's
+    symbolic analysis (:class:`~h2o_slam.core.spd.SPDFactor`).
+
+    Args:
+        a, b: endpoints of every edge (``a`` is :data:`EARTH` for global edges).
+        free: the nodes solved for; the others (and the earth) are held.
+        num_nodes: nodes in the graph.
+        p: unknowns per node (3 planar, 6 otherwise).
+    """
+
+    def __init__(
+        self, a: np.ndarray, b: np.ndarray, free: np.ndarray, num_nodes: int, p: int
+    ) -> None:
+        self.a, self.b, self.free = a.copy(), b.copy(), free.copy()
+        self.num_nodes, self.p = num_nodes, p
+        nf = len(free)
+        self.size = size = nf * p
+        # Block column of each edge's endpoints, -1 where held (block[-1]: the earth's).
+        block = np.full(num_nodes + 1, -1, dtype=np.int64)
+        block[free] = np.arange(nf)
+        ends = np.stack([block[a], block[b]], axis=1)  # (m, 2)
+        # Off-diagonal blocks (upper: row block < column block), sorted column-major; each
+        # edge's rank among the blocks of its column. Diagonal blocks: every free node.
+        both = np.all(ends >= 0, axis=1)
+        lo, hi = ends.min(axis=1), ends.max(axis=1)
+        keys, which = np.unique(hi[both] * nf + lo[both], return_inverse=True)
+        key_col, key_row = keys // max(nf, 1), keys % max(nf, 1)
+        first = np.searchsorted(key_col, np.arange(nf))
+        per_col = np.bincount(key_col, minlength=nf)  # off-diagonal blocks per block column
+        rank = np.full(len(a), -1, dtype=np.int64)
+        rank[both] = which - first[hi[both]]
+        # CSC: scalar column (j, v) holds its off-diagonal blocks' p rows each, then the
+        # diagonal block's rows u ≤ v.
+        u = np.arange(p)
+        counts = (per_col[:, None] * p + u + 1).ravel()
+        self.indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self.nnz = nnz = int(self.indptr[-1])
+        start = self.indptr[:-1].reshape(nf, p)  # first entry of scalar column (j, v)
+        self.indices = np.empty(nnz, dtype=np.int64)
+        off = start[key_col][:, None, :] + ((np.arange(len(keys)) - first[key_col]) * p)[
+            :, None, None] + u[None, :, None]  # (blocks, u, v)
+        self.indices[off.ravel()] = np.broadcast_to(
+            (key_row * p)[:, None, None] + u[None, :, None], off.shape).ravel()
+        upper_uv = u[:, None] <= u[None, :]
+        diag = start[:, None, :] + (per_col * p)[:, None, None] + u[None, :, None]
+        rows = np.broadcast_to((np.arange(nf) * p)[:, None, None] + u[None, :, None], diag.shape)
+        self.indices[diag[:, upper_uv].ravel()] = rows[:, upper_uv].ravel()
+        self._diag = (start + (per_col * p)[:, None] + u).ravel()
+        # Where each entry (s, t) of an edge's [J_a | J_b]ᵀ[J_a | J_b] goes (nnz: dropped).
+        side = np.repeat([0, 1], p)
+        uu = np.tile(u, 2)
+        rs = ends[:, side][:, :, None]
+        ct = ends[:, side][:, None, :]
+        us, vt = uu[None, :, None], uu[None, None, :]
+        keep = (rs >= 0) & (ct >= 0) & ((rs < ct) | ((rs == ct) & (us <= vt)))
+        blk = np.where(rs == ct, per_col[ct], rank[:, None, None])
+        pos = self.indptr[ct * p + vt] + blk * p + us
+        self._scatter = np.where(keep, pos, nnz).ravel()
+        var = np.where(ends[:, side] >= 0, ends[:, side] * p + uu, size)
+        self._gather = var.ravel()
+        self.factor = SPDFactor(self.indptr, self.indices)
+
+    def fits(self, a: np.ndarray, b: np.ndarray, free: np.ndarray, num_nodes: int) -> bool:
+        """Whether this system is the one of these edges and free nodes."""
+        return (num_nodes == self.num_nodes and np.array_equal(free, self.free)
+                and np.array_equal(a, self.a) and np.array_equal(b, self.b))
+
+    def assemble(self, J: Array, r: Array, damping: float = 0.0) -> tuple[Array, Array]:
+        """Values of ``H + damping · diag(H)`` in the pattern's order, and ``g``, from the
+        whitened Jacobians ``[J_a | J_b]`` ``(m, p, 2p)`` and residuals ``(m, p)``."""
+        blocks = np.swapaxes(J, 1, 2) @ J  # (m, 2p, 2p)
+        # With float weights bincount sums in float64 (numpy's stubs say int).
+        data = np.asarray(np.bincount(self._scatter, blocks.ravel(), minlength=self.nnz + 1),
+                          dtype=float)
+        grad = np.einsum("mki,mk->mi", J, r).ravel()
+        g = np.asarray(np.bincount(self._gather, grad, minlength=self.size + 1), dtype=float)
+        return self.damped(data[: self.nnz], damping), g[: self.size]
+
+    def damped(self, data: Array, damping: float) -> Array:
+        """``data`` of ``H + damping · diag(H)`` (a copy when ``damping > 0``)."""
+        if damping <= 0.0:
+            return data
+        out = data.copy()
+        out[self._diag] *= 1.0 + damping
+        return out
+
+    def matrix(self, data: Array) -> sp.csc_matrix:
+        """The full symmetric matrix with values ``data``."""
+        U = sp.csc_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))
+        return (U + sp.triu(U, k=1).T).tocsc()
+
+    def solve(self, data: Array, g: Array) -> Array:
+        """``H⁻¹ g``; for a singular ``H`` (a direction no edge constrains) the minimum-norm
+        least-squares solution."""
+        try:
+            return self.factor.solve(data, g)
+        except np.linalg.LinAlgError:
+            H = self.matrix(data)
+            return spla.lsqr(H, g, atol=1e-14, btol=1e-14, iter_lim=10 * self.size)[0]

@@ -1,0 +1,348 @@
+"""Interpolated solving (thesis 3.3.6): solve for at most ``d_max`` nodes of a domain.
+
+An edge's domain is two chains of the pose tree, each running from just below the edge root
+down to an endpoint. Interpolation keeps a subset of each chain, evenly spaced and always
+including the endpoint, and treats each kept node ``s`` as the end of a *segment*: the nodes
+after the previous kept node (or after the root) down to ``s``. Three pieces live here:
+
+* :func:`select` — which domain positions are kept, and their segments;
+* :func:`merge_segments` — the merged constraint β of each segment (3.37–3.38): the product of
+  the tree edges' desired transforms, and the sum of their stiffnesses rotated into the
+  frame of ``s``;
+* :func:`distribute` — the TORO-style spread of each kept node's solved change over its whole
+  segment, weighted by the compliance ``1 / diag(B)`` so that stiff nodes move less, keeping
+  the path continuous.
+
+The per-node work is compiled (:mod:`h2o_slam.core.compiled`): one pass of 3×3 products along
+each segment, O(d) in the domain with a small constant, so that the interpolated update
+costs the O(``d_max``) solve plus cheap compositions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from h2o_slam.core import geometry as geo
+from h2o_slam.core.compiled import kernel
+from h2o_slam.core.geometry import Array
+from h2o_slam.core.jacobians import chain_jacobian_one, dof_product_into, endpoint_jacobians_one
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Kept domain positions and their segments (positions index the domain array, which is
+    the a-chain followed by the b-chain, each ordered from the root down).
+
+    Attributes:
+        kept: kept positions, ascending, shape ``(k,)``.
+        start: first position of each kept node's segment, shape ``(k,)``; the segment is
+            ``start[j] … kept[j]``.
+    """
+
+    kept: np.ndarray
+    start: np.ndarray
+
+    @property
+    def lengths(self) -> np.ndarray:
+        """Segment lengths (1 where the kept node's parent is kept or is the root)."""
+        return self.kept - self.start + 1
+
+
+def select(len_a: int, len_b: int, d_max: int) -> Selection:
+    """Keep at most ``d_max`` nodes (at least one per non-empty chain), evenly along each chain.
+
+    Nodes are shared between the chains in proportion to their lengths; each chain keeps its
+    endpoint, where the edge acts.
+    """
+    total = len_a + len_b
+    if total <= d_max:
+        kept = np.arange(total)
+        return Selection(kept, kept.copy())
+    if len_a and len_b:
+        k_a = min(len_a, max(1, min(d_max - 1, round(d_max * len_a / total))))
+        k_b = min(len_b, max(1, d_max - k_a))
+    else:
+        k_a, k_b = min(len_a, d_max), min(len_b, d_max)
+    kept_a, start_a = _even(len_a, k_a, 0)
+    kept_b, start_b = _even(len_b, k_b, len_a)
+    return Selection(np.concatenate([kept_a, kept_b]), np.concatenate([start_a, start_b]))
+
+
+def _even(length: int, k: int, offset: int) -> tuple[np.ndarray, np.ndarray]:
+    if k == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    # Count back from the endpoint in equal strides; the top segment takes the remainder.
+    kept = (length - 1 - (np.arange(k)[::-1] * length) // k).astype(np.int64)
+    start = np.concatenate([[0], kept[:-1] + 1])
+    return kept + offset, start + offset
+
+
+def merge_segments(
+    sel: Selection, k_R: Array, k_t: Array, S: Array
+) -> tuple[Array, Array, Array]:
+    """Merged constraint β of each segment (eq. 3.37–3.38).
+
+    Args:
+        sel: the selection.
+        k_R, k_t: desired transform of each domain node's tree edge, oriented parent → node,
+            shapes ``(d, 3, 3)`` and ``(d, 3)``.
+        S: stiffness of each tree edge in the error coordinates of its node, ``(d, 6, 6)``.
+
+    Returns:
+        ``(R_β, t_β, S_β)`` per segment: ``k_β = ∏ kᵢ`` from the segment's parent down to its
+        kept node, and ``S_β = Σᵢ Rᵢₛᵀ Sᵢ Rᵢₛ`` with ``Rᵢₛ`` the desired rotation from node
+        ``i`` to the kept node ``s``, applied to the translation and rotation blocks alike.
+    """
+    def c(a: Array) -> Array:
+        return np.ascontiguousarray(a, dtype=float)
+
+    return _merge_segments(sel.kept, sel.start, c(k_R), c(k_t), c(S))
+
+
+@kernel
+def add_rotated_stiffness(S: Array, Q: Array, out: Array) -> None:
+    """``out += Rᵀ S R`` with ``R = diag(Q, Q)``: a 6×6 stiffness whose error is turned by
+    the rotation ``Q`` (translation and rotation blocks alike)."""
+    tmp = np.empty((3, 3))
+    for a in range(2):
+        for b in range(2):
+            for i in range(3):
+                for j in range(3):
+                    tmp[i, j] = (S[3 * a + i, 3 * b] * Q[0, j] + S[3 * a + i, 3 * b + 1] * Q[1, j]
+                                 + S[3 * a + i, 3 * b + 2] * Q[2, j])
+            for i in range(3):
+                for j in range(3):
+                    out[3 * a + i, 3 * b + j] += (Q[0, i] * tmp[0, j] + Q[1, i] * tmp[1, j]
+                                                  + Q[2, i] * tmp[2, j])
+
+
+@kernel
+def _merge_segments(
+    kept: np.ndarray, start: np.ndarray, k_R: Array, k_t: Array, S: Array
+) -> tuple[Array, Array, Array]:
+    k = len(kept)
+    R_beta = np.empty((k, 3, 3))
+    t_beta = np.zeros((k, 3))
+    S_beta = np.zeros((k, 6, 6))
+    P_R = np.empty((int((kept - start).max()) + 2 if k else 1, 3, 3))
+    Q = np.empty((3, 3))
+    for j in range(k):
+        length = kept[j] - start[j] + 1
+        P_R[0] = np.eye(3)
+        for i in range(length):
+            pos = start[j] + i
+            geo.add_mulv3(P_R[i], k_t[pos], t_beta[j])
+            geo.mul3_into(P_R[i], k_R[pos], P_R[i + 1])
+        R_beta[j] = P_R[length]
+        for i in range(length):
+            geo.mul3t_into(P_R[i + 1], R_beta[j], Q)
+            add_rotated_stiffness(S[start[j] + i], Q, S_beta[j])
+    return R_beta, t_beta, S_beta
+
+
+@kernel
+def tree_edge_constraints(
+    domain: np.ndarray, tree_edge: np.ndarray, forward: np.ndarray, meas_R: Array,
+    meas_t: Array, info: Array,
+) -> tuple[Array, Array, Array, np.ndarray]:
+    """Desired transform (parent → node) and stiffness (in the node's error coordinates) of
+    each domain node's tree edge, and whether the node is a subtree top (no tree edge:
+    identity, zero stiffness).
+
+    A tree edge measured node → parent is inverted, and its stiffness, which lives in the
+    parent's frame, turned into the node's.
+    """
+    d = len(domain)
+    k_R = np.empty((d, 3, 3))
+    k_t = np.empty((d, 3))
+    S = np.zeros((d, 6, 6))
+    top = np.zeros(d, dtype=np.bool_)
+    for i in range(d):
+        e = tree_edge[domain[i]]
+        if e < 0:
+            top[i] = True
+            k_R[i] = np.eye(3)
+            k_t[i] = 0.0
+            continue
+        if forward[domain[i]]:
+            k_R[i] = meas_R[e]
+            k_t[i] = meas_t[e]
+            S[i] = info[e]
+            continue
+        for a in range(3):
+            k_t[i, a] = 0.0
+            for b in range(3):
+                k_R[i, a, b] = meas_R[e, b, a]
+                k_t[i, a] -= meas_R[e, b, a] * meas_t[e, b]
+        add_rotated_stiffness(info[e], meas_R[e], S[i])
+    return k_R, k_t, S, top
+
+
+@kernel
+def merged_stiffness(
+    tree_R: Array, tree_t: Array, domain: np.ndarray, kept: np.ndarray, start: np.ndarray,
+    R_beta: Array, t_beta: Array, S_beta: Array, dof: np.ndarray,
+) -> Array:
+    """``J_βᵀ J_β`` at each kept node: the diagonal block the merged constraint β of its
+    segment contributes to ``B`` (eq. 3.36), for a perturbation of the kept node's local
+    transform.
+
+    Args:
+        tree_R, tree_t: local transforms of the pose tree.
+        domain: the edge's domain; ``kept``/``start`` index it.
+        kept, start: the segments (see :class:`Selection`).
+        R_beta, t_beta: merged measurements, ``(k, 3, 3)`` and ``(k, 3)``.
+        S_beta: merged stiffness in error coordinates, ``(k, 6, 6)``.
+        dof: the tangent coordinates in use.
+
+    Returns:
+        ``(k, p, p)`` blocks ``J_rawᵀ S_β J_raw`` (= ``J_βᵀ J_β`` with ``J_β = W_β J_raw``,
+        ``W_βᵀ W_β = S_β``: no whitening factor is needed).
+    """
+    k = len(kept)
+    p = len(dof)
+    out = np.empty((k, p, p))
+    Sd = np.empty((p, p))
+    raw = np.empty((p, p))
+    tmp = np.empty((p, p))
+    prefix = np.empty((3, 3, 3))  # three buffers: the parent's, the node's, the next
+    for j in range(k):
+        prefix[0] = np.eye(3)
+        x = np.zeros(3)
+        cur = 0
+        for pos in range(start[j], kept[j] + 1):
+            n = domain[pos]
+            geo.add_mulv3(prefix[cur], tree_t[n], x)
+            geo.mul3_into(prefix[cur], tree_R[n], prefix[(cur + 1) % 3])
+            cur = (cur + 1) % 3
+        R = prefix[cur]
+        R_par = prefix[(cur + 2) % 3]
+        _, _, Jb = endpoint_jacobians_one(0, np.eye(3), np.zeros(3), R, x, R_beta[j], t_beta[j])
+        M = chain_jacobian_one(R_par, R, x, x)
+        dof_product_into(Jb, M, dof, raw)
+        for a in range(p):
+            for b in range(p):
+                Sd[a, b] = S_beta[j, dof[a], dof[b]]
+        for a in range(p):  # Sd raw, then rawᵀ (Sd raw): loops beat two tiny BLAS calls
+            for b in range(p):
+                acc = 0.0
+                for c in range(p):
+                    acc += Sd[a, c] * raw[c, b]
+                tmp[a, b] = acc
+        for a in range(p):
+            for b in range(p):
+                acc = 0.0
+                for c in range(p):
+                    acc += raw[c, a] * tmp[c, b]
+                out[j, a, b] = acc
+    return out
+
+
+def distribute(
+    sel: Selection, R_loc: Array, t_loc: Array, step: Array, compliance: Array
+) -> tuple[Array, Array]:
+    """Spread each kept node's local step over its segment (TORO-style, 3.3.6.2).
+
+    Args:
+        sel: the selection.
+        R_loc, t_loc: local transforms of the domain nodes, ``(d, 3, 3)`` and ``(d, 3)``.
+        step: local step ``(δt, δθ)`` of each kept node, ``(k, 6)``, already scaled.
+        compliance: distribution weight of each domain node, ``(d,)`` (``1 / diag(B)``).
+
+    Returns:
+        New local transforms of the domain nodes (see :func:`distribute_into`).
+    """
+    out_R = np.array(R_loc, dtype=float)
+    out_t = np.array(t_loc, dtype=float)
+    distribute_into(out_R, out_t, np.arange(len(out_R)), sel.kept, sel.start,
+                    np.ascontiguousarray(step, dtype=float),
+                    np.ascontiguousarray(compliance, dtype=float))
+    return out_R, out_t
+
+
+@kernel
+def distribute_into(
+    tree_R: Array, tree_t: Array, domain: np.ndarray, kept: np.ndarray, start: np.ndarray,
+    step: Array, compliance: Array,
+) -> None:
+    """:func:`distribute` in place on the pose tree's local transforms (``domain`` maps the
+    selection's positions to nodes).
+
+    Each kept node ends exactly where its step puts it relative to the segment's parent; the
+    nodes in between take a share of the rotation and translation in proportion to their
+    cumulative compliance, keeping the path continuous.
+    """
+    longest = int((kept - start).max()) + 1 if len(kept) else 1
+    H_R = np.empty((longest, 3, 3))
+    H_x = np.empty((longest, 3))
+    frac = np.empty(longest)
+    R_new = np.empty((longest, 3, 3))
+    local_R = np.empty((longest, 3, 3))
+    x_rot = np.empty((longest, 3))
+    eye = np.eye(3)
+    E = np.empty((3, 3))
+    tmp = np.empty((3, 3))
+    acc_R = np.empty((3, 3))
+    target_R = np.empty((3, 3))
+    for j in range(len(kept)):
+        s0 = start[j]
+        length = kept[j] - s0 + 1
+        R = eye
+        x = np.zeros(3)
+        total = 0.0
+        for i in range(length):
+            n = domain[s0 + i]
+            geo.add_mulv3(R, tree_t[n], x)
+            H_x[i] = x
+            geo.mul3_into(R, tree_R[n], H_R[i])
+            R = H_R[i]
+            total += compliance[s0 + i]
+        # Target of the kept node in its segment's frame: its parent's pose times its local
+        # transform with the step applied.
+        last = domain[kept[j]]
+        par_R = H_R[length - 2] if length > 1 else eye
+        target_x = H_x[length - 2].copy() if length > 1 else np.zeros(3)
+        geo.add_mulv3(par_R, tree_t[last] + step[j, :3], target_x)
+        geo.so3_exp_into(step[j, 3:], E)
+        geo.mul3_into(tree_R[last], E, tmp)
+        geo.mul3_into(par_R, tmp, target_R)
+        # ω: the turn that takes the segment's end from its rotation to the target's.
+        for a in range(3):
+            for b in range(3):
+                tmp[a, b] = (target_R[a, 0] * H_R[length - 1, b, 0]
+                             + target_R[a, 1] * H_R[length - 1, b, 1]
+                             + target_R[a, 2] * H_R[length - 1, b, 2])
+        omega = geo.so3_log_one(tmp)
+        # Turn the segment: node i's pose rotates by its share of ω.
+        acc_R[:] = eye
+        acc_x = np.zeros(3)
+        cum = 0.0
+        R_prev = eye
+        for i in range(length):
+            cum += compliance[s0 + i]
+            frac[i] = cum / total
+            geo.so3_exp_into(frac[i] * omega, E)
+            geo.mul3_into(E, H_R[i], R_new[i])
+            geo.mul3t_into(R_prev, R_new[i], local_R[i])
+            R_prev = R_new[i]
+            geo.add_mulv3(acc_R, tree_t[domain[s0 + i]], acc_x)
+            geo.mul3_into(acc_R, local_R[i], tmp)
+            acc_R[:] = tmp
+            x_rot[i] = acc_x
+        # Then shift it: node i's position moves by its share of the kept node's miss.
+        miss = target_x - x_rot[length - 1]
+        x_prev = np.zeros(3)
+        for i in range(length):
+            n = domain[s0 + i]
+            for a in range(3):
+                tmp[0, a] = x_rot[i, a] + frac[i] * miss[a] - x_prev[a]
+                x_prev[a] += tmp[0, a]
+            if i == 0:
+                tree_t[n] = tmp[0]
+            else:
+                for a in range(3):
+                    tree_t[n, a] = (R_new[i - 1, 0, a] * tmp[0, 0] + R_new[i - 1, 1, a] * tmp[0, 1]
+                                    + R_new[i - 1, 2, a] * tmp[0, 2])
+            geo.renormalize_into(local_R[i], tree_R[n])

@@ -1,0 +1,232 @@
+"""``h2o-solve`` on real files it writes and reads."""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+
+import numpy as np
+import pytest
+
+from h2o_slam.app.cli.common import ProgressLine
+from h2o_slam.app.cli.solve import main
+from h2o_slam.core.chi2_metrics import METRICS, all_chi2
+from h2o_slam.core.graph import chi2
+from h2o_slam.io.g2o import read_g2o, write_g2o
+from h2o_slam.io.synthetic import grid3d, manhattan
+
+
+@pytest.fixture(scope="module")
+def planar_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("g") / "city.g2o"
+    write_g2o(path, manhattan(120, seed=2).graph)
+    return path
+
+
+@pytest.mark.parametrize("mode", ["offline", "online", "exact"])
+def test_solves_and_reports(planar_file, tmp_path, mode, capsys):
+    out, report = tmp_path / "out.g2o", tmp_path / "report.json"
+    code = main([str(planar_file), "--output", str(out), "--mode", mode,
+                 "--passes", "3", "--report", str(report)])
+    assert code == 0
+    data = json.loads(report.read_text())
+    assert json.loads(capsys.readouterr().out) == data
+    for key in ("nodes", "edges", "chi2_initial", "chi2_final", "chi2_per_pass", "wall_s"):
+        assert key in data
+    graph = read_g2o(planar_file)
+    solved = read_g2o(out)
+    assert np.array_equal(solved.ids, graph.ids)
+    assert solved.num_edges == graph.num_edges == data["edges"]
+    # The written vertices are the solution, at round-trip precision.
+    assert chi2(graph, solved.R, solved.t) == pytest.approx(data["chi2_final"], rel=1e-9)
+    assert data["chi2_final"] < data["chi2_initial"]
+    if mode == "online":
+        assert set(data["per_callback_ms"]) == {"mean", "p99", "max"}
+        assert data["per_callback_ms"]["max"] >= data["per_callback_ms"]["p99"] > 0
+    else:
+        assert data["per_callback_ms"] is None
+
+
+def test_three_dimensional_exact_solve(tmp_path):
+    src = tmp_path / "cube.g2o"
+    write_g2o(src, grid3d(40, seed=4).graph)
+    out = tmp_path / "cube_out.g2o"
+    assert main([str(src), "-o", str(out), "--mode", "exact", "--init", "input"]) == 0
+    graph = read_g2o(src)
+    solved = read_g2o(out)
+    assert chi2(graph, solved.R, solved.t) < 0.5 * chi2(graph)
+
+
+def test_bad_file_gives_one_line_naming_file_and_line(tmp_path, capsys):
+    bad = tmp_path / "bad.g2o"
+    bad.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0 zero 1 0 0 1 0 1\n")
+    code = main([str(bad), "--output", str(tmp_path / "o.g2o")])
+    err = capsys.readouterr().err.strip()
+    assert code == 1
+    assert len(err.splitlines()) == 1
+    assert f"{bad}:3:" in err
+    assert not (tmp_path / "o.g2o").exists()
+
+
+def test_missing_file_is_one_line(tmp_path, capsys):
+    code = main([str(tmp_path / "nope.g2o"), "--output", str(tmp_path / "o.g2o")])
+    err = capsys.readouterr().err.strip()
+    assert code == 1 and len(err.splitlines()) == 1 and "nope.g2o" in err
+
+
+def test_period_needs_an_online_budget(planar_file, tmp_path, capsys):
+    out = tmp_path / "o.g2o"
+    code = main([str(planar_file), "--output", str(out), "--mode", "online", "--period-ms", "5"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "--period-ms" in err
+    assert not out.exists()
+
+
+def test_paced_online_run_reports_its_period_and_idle_steps(planar_file, tmp_path):
+    out, report = tmp_path / "o.g2o", tmp_path / "r.json"
+    assert main([str(planar_file), "--output", str(out), "--mode", "online", "--budget-ms", "1",
+                 "--period-ms", "3", "--idle-s", "0", "--report", str(report)]) == 0
+    data = json.loads(report.read_text())
+    assert data["period_ms"] == 3.0
+    assert data["idle_steps_between"] > 0
+    assert 0 < data["updates"]
+
+
+def test_unbudgeted_online_run_counts_an_update_for_every_new_edge(planar_file, tmp_path):
+    out, report = tmp_path / "o.g2o", tmp_path / "r.json"
+    assert main([str(planar_file), "--output", str(out), "--mode", "online", "--idle-s", "0",
+                 "--report", str(report)]) == 0
+    data = json.loads(report.read_text())
+    # Each arrival's edges are relaxed in its callback, all but its own tree edge (which
+    # starts satisfied).
+    assert data["updates"] >= data["edges"] - (data["nodes"] - 1) > 0
+
+
+def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, list[str], str]:
+    """Exit code, stderr lines and stdout of ``h2o-solve argv`` (argparse's exits too)."""
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    captured = capsys.readouterr()
+    return code, captured.err.strip().splitlines(), captured.out
+
+
+def test_default_is_exact_to_convergence_from_the_tree(planar_file, tmp_path, capsys):
+    out, report = tmp_path / "o.g2o", tmp_path / "r.json"
+    code, err, _ = run([str(planar_file), "-o", str(out), "--report", str(report), "-q"],
+                       capsys)
+    data = json.loads(report.read_text())
+    assert code == 0 and err == []
+    assert (data["mode"], data["init"], data["converged"]) == ("exact", "tree", True)
+    # passes is what ran, not the cap.
+    assert data["passes"] == data["iterations"] == len(data["chi2_per_pass"]) < 100
+    assert data["max_iterations"] == 100 and data["tolerance"] == 1e-10
+    graph = read_g2o(planar_file)
+    offline = tmp_path / "off.json"
+    assert main([str(planar_file), "-o", str(tmp_path / "off.g2o"), "--mode", "offline",
+                 "--report", str(offline), "-q"]) == 0
+    assert data["chi2_final"] <= json.loads(offline.read_text())["chi2_final"]
+    solved = read_g2o(out)
+    assert chi2(graph, solved.R, solved.t) == pytest.approx(data["chi2_final"], rel=1e-9)
+
+
+def test_exact_at_its_cap_says_so(planar_file, tmp_path, capsys):
+    report = tmp_path / "r.json"
+    code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--passes", "1",
+                        "--report", str(report), "-q"], capsys)
+    data = json.loads(report.read_text())
+    assert code == 0 and data["converged"] is False
+    assert data["passes"] == data["iterations"] == 1
+    assert len(err) == 1 and err[0].startswith("h2o-solve: warning: exact mode stopped at its "
+                                               "cap of 1 iterations"), err
+
+
+def test_a_loose_tolerance_stops_sooner(planar_file, tmp_path, capsys):
+    reports = []
+    for tol in ("1e-10", "0.5"):
+        report = tmp_path / f"r{tol}.json"
+        assert main([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--tolerance", tol,
+                     "--report", str(report), "-q"]) == 0
+        reports.append(json.loads(report.read_text()))
+    assert reports[1]["converged"] and reports[1]["tolerance"] == 0.5
+    assert reports[1]["iterations"] < reports[0]["iterations"]
+
+
+def test_lago_report_names_no_start(planar_file, tmp_path, capsys):
+    report = tmp_path / "r.json"
+    assert main([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--solver", "lago",
+                 "--report", str(report), "-q"]) == 0
+    data = json.loads(report.read_text())
+    assert (data["mode"], data["init"], data["passes"]) == ("lago", None, 0)
+    assert data["iterations"] is None
+
+
+@pytest.mark.parametrize("metric", METRICS)
+def test_metric_sets_the_reported_chi2_and_all_three_are_reported(planar_file, tmp_path,
+                                                                  metric, capsys):
+    cube = tmp_path / "cube.g2o"
+    write_g2o(cube, grid3d(20, seed=4).graph)
+    out, report = tmp_path / "o.g2o", tmp_path / "r.json"
+    assert main([str(cube), "-o", str(out), "--init", "input", "--metric", metric,
+                 "--report", str(report), "-q"]) == 0
+    data = json.loads(report.read_text())
+    graph, solved = read_g2o(cube), read_g2o(out)
+    assert data["metric"] == metric
+    assert data["chi2_metrics"]["initial"] == pytest.approx(all_chi2(graph))
+    assert data["chi2_metrics"]["final"] == pytest.approx(all_chi2(graph, solved.R, solved.t),
+                                                          rel=1e-9)
+    assert data["chi2_initial"] == data["chi2_metrics"]["initial"][metric]
+    assert data["chi2_final"] == data["chi2_metrics"]["final"][metric]
+    assert data["chi2_per_pass"][-1] == data["chi2_final"]
+
+
+@pytest.mark.parametrize("args, named", [
+    (["--passes", "-1"], "--passes"), (["--passes", "two"], "--passes"),
+    (["--tolerance", "2"], "--tolerance"), (["--tolerance", "nan"], "--tolerance"),
+    (["--d-max", "0"], "--d-max"), (["--budget-ms", "-1"], "--budget-ms"),
+    (["--budget-ms", "5"], "--budget-ms"), (["--gps-batch-size", "0"], "--gps-batch-size"),
+    (["--idle-s", "inf"], "--idle-s"), (["--samples", "-2"], "--samples"),
+    (["--metric", "ceres"], "--metric"), (["--mode", "fast"], "--mode"),
+])
+def test_usage_errors_exit_2_naming_the_argument(planar_file, tmp_path, args, named, capsys):
+    out = tmp_path / "o.g2o"
+    code, err, _ = run([str(planar_file), "-o", str(out), *args], capsys)
+    assert code == 2 and len(err) == 1 and err[0].startswith("h2o-solve: ") and named in err[0]
+    assert not out.exists()
+
+
+def test_progress_line_after_a_second_and_quiet(planar_file, tmp_path, capsys):
+    stream = io.StringIO()
+    with ProgressLine("h2o-solve", period_s=0.05, stream=stream) as line:
+        line.status = "offline: pass 3, chi2 12.5"
+        time.sleep(0.2)
+    lines = stream.getvalue().splitlines()
+    assert lines and all(x.startswith("h2o-solve: offline: pass 3, chi2 12.5 (") for x in lines)
+    stream = io.StringIO()
+    with ProgressLine("h2o-solve", period_s=0.05, stream=stream, enabled=False):
+        time.sleep(0.15)
+    assert stream.getvalue() == ""
+    # A solve shorter than the period prints nothing.
+    code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o")], capsys)
+    assert code == 0 and err == []
+
+
+def test_a_solve_longer_than_a_second_prints_progress(planar_file, tmp_path, capsys,
+                                                      monkeypatch):
+    import h2o_slam.app.cli.solve as solve_cli
+
+    real = solve_cli.solve_file
+
+    def slow(input_path, output_path, options, metric, progress):
+        progress(1, 123.0)
+        time.sleep(1.3)
+        return real(input_path, output_path, options, metric, progress)
+
+    monkeypatch.setattr(solve_cli, "solve_file", slow)
+    argv = [str(planar_file), "-o", str(tmp_path / "o.g2o"), "--mode", "offline"]
+    code, err, _ = run(argv, capsys)
+    assert code == 0 and err and err[0].startswith("h2o-solve: offline: pass 1, chi2 123 ("), err
+    code, err, _ = run([*argv, "--quiet"], capsys)
+    assert code == 0 and err == []
