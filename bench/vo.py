@@ -41,7 +41,7 @@ from results_md import command, replace_section  # noqa: E402
 from vo_full import CircularStereoVO, FullStereoVO  # noqa: E402
 from vo_kitti import segment_drift  # noqa: E402
 
-from h2o_slam.io.replay_outputs import ate_m  # noqa: E402
+from h2o_slam.core.trajectory_error import ate_m  # noqa: E402
 from hybrid_vo.odometer import HybridOdometer  # noqa: E402
 from hybrid_vo.world import (  # noqa: E402
     integrate,

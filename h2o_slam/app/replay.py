@@ -45,24 +45,21 @@ from rclpy.parameter import Parameter
 from rclpy.serialization import deserialize_message
 
 import msg_adapters as ma
+from h2o_slam.app.progress import Progress
 from h2o_slam.core.errors import InputError
 from h2o_slam.core.graph import EdgeKind, edge_chi2
+from h2o_slam.core.trajectory_error import ate_m, final_error_m, match_stamps
 from h2o_slam.io.bag_reader import BagMessage, BagReader, BagStats
 from h2o_slam.io.bag_writer import BagWriter
 from h2o_slam.io.bags import ReplayError, Storage, jazzy_typestore
-from h2o_slam.io.replay_outputs import (
+from h2o_slam.io.plots import (
     NodeCallbacks,
-    Progress,
-    ate_m,
-    final_error_m,
-    match_stamps,
     node_callbacks,
     plot_callback_times,
     plot_chi2,
     plot_trajectories,
-    write_summary,
-    write_tum,
 )
+from h2o_slam.io.replay_outputs import write_summary, write_tum
 from h2o_slam.io.topic_map import REQUIRED_ROLES
 from h2o_slam.ros.h2o_node import H2ONode
 from hybrid_vo.vo_node import HybridVoNode

@@ -1,18 +1,14 @@
-"""Replay I/O on real files: bags written by the simulator in both rosbag2 storages and as
-a ROS 1 bag, damaged bags, topic maps, the output bag, TUM files (read back by evo), ATE,
-the summary and the plots."""
+"""Bag I/O on real files: bags written by the simulator in both rosbag2 storages and as a
+ROS 1 bag, damaged bags, topic maps, and the output bag."""
 
 from __future__ import annotations
 
-import io
-import json
 import os
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 from rclpy.serialization import serialize_message
 from rosbags.convert.converter import migrate_bytes
@@ -21,33 +17,15 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from h2o_slam.core.errors import InputError
-from h2o_slam.core.geometry import matrix_to_quat, yaw_to_matrix
 from h2o_slam.io.bag_reader import BagMessage, BagReader, read_bag
 from h2o_slam.io.bag_writer import BagWriter, message_type_name, write_bag
 from h2o_slam.io.bags import ReplayError, jazzy_typestore
-from h2o_slam.io.replay_outputs import (
-    Progress,
-    align_planar,
-    ate_m,
-    final_error_m,
-    match_stamps,
-    node_callbacks,
-    plot_callback_times,
-    plot_chi2,
-    plot_trajectories,
-    read_tum,
-    seconds_to_ns,
-    write_summary,
-    write_tum,
-    yaw_of_quaternions,
-)
 from h2o_slam.io.topic_map import DEFAULT_TOPICS, ROLES, load_topic_map, topic_map
 from hybrid_vo.world import make_drive, scenario
 from hybrid_vo.world_messages import StreamMessage, Topics, drive_messages, rclpy_message_types
 
 REPO = Path(__file__).resolve().parents[2]
 JAZZY = jazzy_typestore()
-PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
 def canonical(type_name: str, cdr: bytes) -> bytes:
@@ -408,246 +386,3 @@ def test_writer_errors(tmp_path: Path) -> None:
     with pytest.raises(ReplayError, match="unknown storage 'zip'"):
         BagWriter(tmp_path / "zip", "zip")  # type: ignore[arg-type]
     assert message_type_name(types["image"]()) == "sensor_msgs/msg/Image"
-
-
-# --- TUM files ------------------------------------------------------------------------------
-
-
-def _trajectory(n: int = 50, seed: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    stamps = 1_700_000_000 * 10**9 + np.cumsum(rng.integers(1, 10**8, n))
-    stamps[0] = 1_700_000_000 * 10**9 + 42  # a stamp float seconds cannot hold
-    xyz = rng.normal(size=(n, 3)) * [100.0, 100.0, 1.0]
-    yaw = rng.uniform(-np.pi, np.pi, n)
-    return stamps, xyz, yaw
-
-
-def test_tum_round_trip_is_bit_exact(tmp_path: Path) -> None:
-    stamps, xyz, yaw = _trajectory()
-    path = write_tum(tmp_path / "traj.tum", stamps, xyz, yaw_rad=yaw)
-    got_stamps, got_xyz, got_q = read_tum(path)
-    assert got_stamps.dtype == np.int64 and np.array_equal(got_stamps, stamps)
-    assert np.array_equal(got_xyz, xyz)
-    assert np.array_equal(got_q, matrix_to_quat(yaw_to_matrix(yaw)))
-    np.testing.assert_allclose(yaw_of_quaternions(got_q), yaw, atol=1e-12)
-    rotations = yaw_to_matrix(yaw)
-    again = write_tum(tmp_path / "again.tum", got_stamps, got_xyz, rotations=rotations)
-    assert again.read_text() == path.read_text()
-
-
-def test_tum_files_load_with_evo(tmp_path: Path) -> None:
-    file_interface = pytest.importorskip("evo.tools.file_interface")
-    stamps, xyz, yaw = _trajectory()
-    path = write_tum(tmp_path / "traj.tum", stamps, xyz[:, :2], yaw_rad=yaw)
-    traj = file_interface.read_tum_trajectory_file(str(path))
-    assert traj.num_poses == len(stamps)
-    np.testing.assert_array_equal(traj.positions_xyz[:, :2], xyz[:, :2])
-    np.testing.assert_array_equal(traj.positions_xyz[:, 2], 0.0)
-    np.testing.assert_allclose(traj.timestamps, stamps / 1e9, rtol=0, atol=1e-6)
-    wxyz = np.roll(matrix_to_quat(yaw_to_matrix(yaw)), 1, axis=1)
-    np.testing.assert_array_equal(traj.orientations_quat_wxyz, wxyz)
-
-
-def test_tum_errors(tmp_path: Path) -> None:
-    stamps, xyz, yaw = _trajectory(5)
-    with pytest.raises(ReplayError, match="exactly one of yaw_rad or rotations"):
-        write_tum(tmp_path / "a.tum", stamps, xyz)
-    with pytest.raises(ReplayError, match=r"positions must be \(5, 2 or 3\)"):
-        write_tum(tmp_path / "a.tum", stamps, xyz[:4], yaw_rad=yaw)
-    bad = xyz.copy()
-    bad[2, 0] = np.nan
-    with pytest.raises(ReplayError, match="non-finite"):
-        write_tum(tmp_path / "a.tum", stamps, bad, yaw_rad=yaw)
-    path = tmp_path / "b.tum"
-    path.write_text("# header\n1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 1\n")
-    with pytest.raises(ReplayError, match="b.tum: line 3: expected 8 fields, found 7"):
-        read_tum(path)
-    path.write_text("1.0 0 0 zero 0 0 0 1\n")
-    with pytest.raises(ReplayError, match="line 1: could not convert"):
-        read_tum(path)
-
-
-@pytest.mark.parametrize(
-    ("text", "ns"),
-    [("1700000000.000000042", 1_700_000_000_000_000_042), ("12", 12 * 10**9),
-     ("0.5", 500_000_000), ("-0.5", -500_000_000), ("1.5e-3", 1_500_000),
-     ("3.1234567891", 3_123_456_789)],
-)
-def test_seconds_to_ns_is_exact(text: str, ns: int) -> None:
-    assert seconds_to_ns(text) == ns
-
-
-# --- accuracy -------------------------------------------------------------------------------
-
-
-def test_ate_is_zero_for_a_rigidly_moved_copy_and_the_rms_otherwise() -> None:
-    rng = np.random.default_rng(0)
-    truth = np.cumsum(rng.normal(size=(200, 2)), axis=0)
-    R = yaw_to_matrix(0.7)[:2, :2]
-    moved = truth @ R.T + [5.0, -3.0]
-    assert ate_m(moved, truth) < 1e-9
-    R_fit, t_fit = align_planar(moved, truth)
-    np.testing.assert_allclose(R_fit, R.T, atol=1e-12)
-    # Noise of known RMS, with mean and rotation removed so alignment cannot absorb it.
-    noise = rng.normal(size=truth.shape) * 0.3
-    noise -= noise.mean(axis=0)
-    noisy = truth + noise
-    assert ate_m(noisy, truth) <= np.sqrt(np.mean(np.sum(noise**2, axis=1))) + 1e-12
-    assert ate_m(noisy, truth) > 0.25
-
-
-def test_alignment_never_reflects() -> None:
-    truth = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [2.0, 3.0]])
-    mirrored = truth * [1.0, -1.0]
-    R, _ = align_planar(mirrored, truth)
-    assert np.linalg.det(R) == pytest.approx(1.0)
-    assert ate_m(mirrored, truth) > 0.5
-
-
-def test_final_error_and_stamp_matching() -> None:
-    est = np.array([[0.0, 0.0], [1.0, 1.0], [3.0, 4.0]])
-    truth = np.zeros((3, 2))
-    assert final_error_m(est, truth) == 5.0
-    i, j = match_stamps([100, 205, 290, 900], [0, 100, 200, 300], tolerance_ns=10)
-    assert i.tolist() == [0, 1, 2] and j.tolist() == [1, 2, 3]
-    with pytest.raises(ValueError, match="two or more"):
-        ate_m(est[:1], truth[:1])
-
-
-# --- summary, plots, progress ---------------------------------------------------------------
-
-
-def test_summary_json_takes_numpy_and_nan(tmp_path: Path) -> None:
-    path = write_summary(tmp_path / "summary.json", {
-        "ate_m": np.float64(0.25), "counts": {"gps": np.int64(3)}, "chi2": np.array([1.0, 2.0]),
-        "overrun": float("nan"), "bag": tmp_path, "pair": (1, 2)})
-    data = json.loads(path.read_text())
-    assert data == {"ate_m": 0.25, "counts": {"gps": 3}, "chi2": [1.0, 2.0], "overrun": None,
-                    "bag": str(tmp_path), "pair": [1, 2]}
-
-
-def _png_size(path: Path) -> tuple[int, int]:
-    blob = path.read_bytes()
-    assert blob[:8] == PNG_MAGIC and len(blob) > 5000
-    return int.from_bytes(blob[16:20], "big"), int.from_bytes(blob[20:24], "big")
-
-
-@pytest.fixture
-def saved_axes(monkeypatch: pytest.MonkeyPatch) -> list[list[Any]]:
-    """The axes of every figure saved, as they were when saved (one list per figure)."""
-    from matplotlib.figure import Figure
-
-    saved: list[list[Any]] = []
-    original = Figure.savefig
-
-    def savefig(fig: Figure, *args: Any, **kwargs: Any) -> None:
-        saved.append(list(fig.axes))
-        original(fig, *args, **kwargs)
-
-    monkeypatch.setattr(Figure, "savefig", savefig)
-    return saved
-
-
-def _labels(ax: Any) -> list[str]:
-    return [str(line.get_label()) for line in ax.get_lines()]
-
-
-def test_plots_are_png_files(tmp_path: Path) -> None:
-    t = np.linspace(0, 10, 50)
-    xy = np.stack([t, np.sin(t)], axis=1)
-    calls = [(float(s), float(s) / 2, "odometry") for s in t]
-    paths = [
-        plot_trajectories(tmp_path / "traj.png", {"wheel": xy, "h2o": xy + 0.1},
-                          gps_enu=xy[::5] + 0.3),
-        plot_trajectories(tmp_path / "empty.png", {"wheel": np.zeros((0, 2))}),
-        plot_callback_times(tmp_path / "cb.png", {"h2o_node": node_callbacks(calls, budget_ms=5.0),
-                                                  "hybrid_vo_node": node_callbacks(calls)}),
-        plot_callback_times(tmp_path / "cb_empty.png", {"h2o_node": node_callbacks([])}),
-        plot_chi2(tmp_path / "chi2.png", {"run": (t, np.exp(-t) + 1.0)}),
-        plot_chi2(tmp_path / "chi2_zero.png", {"tree": (t, np.full(len(t), 1e-27))}),
-    ]
-    for path in paths:
-        width, height = _png_size(path)
-        assert width > 300 and height > 200
-
-
-def test_trajectory_plot_draws_the_truth_on_top_dashed_and_the_errors_beside(
-        tmp_path: Path, saved_axes: list[list[Any]]) -> None:
-    t_ns = np.arange(50, dtype=np.int64) * 100_000_000
-    truth = np.stack([np.linspace(0, 10, 50), np.zeros(50)], axis=1)
-    est = truth + [0.0, 0.2]
-    plot_trajectories(tmp_path / "traj.png", {"estimate": est, "ground truth": truth},
-                      stamps_ns={"estimate": t_ns, "ground truth": t_ns})
-    xy_ax, error_ax = saved_axes[0]
-    truth_line = next(ln for ln in xy_ax.get_lines() if ln.get_label() == "ground truth")
-    assert truth_line.get_linestyle() == "--"
-    assert truth_line.get_zorder() > max(ln.get_zorder() for ln in xy_ax.get_lines()
-                                         if ln is not truth_line and ln.get_label() != "start")
-    # A constant offset is removed by the ATE's alignment: the error is ~0, as the ATE is.
-    assert _labels(error_ax) == ["estimate (ATE 0.000 m)"]
-    assert "estimate (ATE 0.000 m)" in _labels(xy_ax)
-    legend = [text.get_text() for text in xy_ax.figure.legends[0].get_texts()]
-    assert legend == ["estimate (ATE 0.000 m)", "ground truth", "start"]  # each once, below
-    assert _png_size(tmp_path / "traj.png")[0] > 1000
-
-
-def test_chi2_axis_starts_at_the_first_meaningful_value(
-        tmp_path: Path, saved_axes: list[list[Any]]) -> None:
-    t = np.arange(0.0, 100.0, 1.0)
-    # A run without GPS: a tree (χ² at rounding level) until the first loop closure at 34 s.
-    chi2 = np.where(t < 34, 1e-27, 0.05 * 1.1 ** (t - 34))
-    plot_chi2(tmp_path / "chi2.png", {"without GPS": (t, chi2)})
-    (ax,) = saved_axes[0]
-    low, high = ax.get_ylim()
-    assert 0.01 < low < 0.1 and high > 10
-    assert ax.get_yscale() == "log"
-    (drawn,) = ax.get_lines()
-    assert drawn.get_xdata()[0] == 34
-    legend = [text.get_text() for text in ax.figure.legends[0].get_texts()]
-    assert legend[0].startswith("without GPS: χ² ≈ 0 until 34 s")
-
-
-def test_callback_plot_is_per_node_against_bag_time_with_the_budget(
-        tmp_path: Path, saved_axes: list[list[Any]]) -> None:
-    h2o = [(0.5 * i, 0.3 if i % 3 else 4.0, "odometry" if i % 3 else "GPS fix")
-           for i in range(60)]
-    vo = [(0.05 * i, 1.5 if i % 2 else 0.02, "stereo pair" if i % 2 else "image buffered")
-          for i in range(600)]
-    plot_callback_times(tmp_path / "cb.png", {
-        "h2o_node": node_callbacks(h2o, budget_ms=5.0),
-        "hybrid_vo_node": node_callbacks(vo, budget_ms=100.0, budget_label="frame interval",
-                                         hidden_kinds=("image buffered",))})
-    h2o_ax, vo_ax = saved_axes[0]
-    assert h2o_ax.get_title(loc="left") == "h2o_node"
-    # Cheapest kind first, each with its count; then the budget.
-    assert [label.split(":")[0] for label in _labels(h2o_ax)] == ["odometry (40)",
-                                                                   "GPS fix (20)",
-                                                                   "budget 5 ms"]
-    odometry = h2o_ax.get_lines()[0]
-    assert odometry.get_xdata().max() == pytest.approx(29.5)  # bag time, not the index
-    assert [label.split(":")[0] for label in _labels(vo_ax)] == ["stereo pair (300)",
-                                                                  "frame interval"]
-    assert "300 callbacks 'image buffered' not drawn" in vo_ax.get_title(loc="left")
-    assert vo_ax.get_yscale() == "log"  # 1.5 ms against a 100 ms limit
-    assert h2o_ax.get_xlabel() == "" and vo_ax.get_xlabel() == "bag time (s)"
-
-
-class _Tty(io.StringIO):
-    def isatty(self) -> bool:
-        return True
-
-
-def test_progress_draws_only_on_a_terminal() -> None:
-    quiet = io.StringIO()
-    bar = Progress(10.0, "replay", stream=quiet)
-    bar.update(5.0)
-    bar.close()
-    assert quiet.getvalue() == ""
-    tty = _Tty()
-    bar = Progress(10.0, "replay", stream=tty, min_interval_s=0.0)
-    bar.update(5.0, note="3 GPS")
-    bar.update(10.0)
-    bar.close()
-    lines = tty.getvalue().split("\r")
-    assert "replay [" in lines[1] and " 50% 5.0/10.0 s" in lines[1] and "3 GPS" in lines[1]
-    assert "100%" in lines[-1] and lines[-1].endswith("\n") and "x real time" in lines[-1]

@@ -41,7 +41,8 @@ from h2o_slam.core.graph import EdgeKind
 from h2o_slam.io.bag_writer import write_bag
 from h2o_slam.io.bags import Storage
 from h2o_slam.io.g2o import read_g2o
-from h2o_slam.io.replay_outputs import plot_callback_times, plot_chi2, plot_trajectories, read_tum
+from h2o_slam.io.plots import plot_callback_times, plot_chi2, plot_trajectories
+from h2o_slam.io.replay_outputs import read_tum
 from hybrid_vo import world
 from hybrid_vo.world_messages import drive_messages
 
