@@ -47,7 +47,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from results_md import add_graph_arguments, command, publish, results_path, revision, select_graphs
+from results_md import (
+    add_graph_arguments,
+    command,
+    publish,
+    results_path,
+    revision,
+    select_graphs,
+    table_head,
+)
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core import lago as lago_mod
@@ -274,7 +282,7 @@ def format_tables(rows: list[Row], passes: int) -> str:
             "| ours χ² (J at Δ̄) | CLI χ² | CLI wall s "
             "| LM χ² (input start) | LM iters | LM χ² (our start) | LM iters "
             "| H₂O exact χ² (our start) | iters | optimum |")
-    lines = [head, "| " + " | ".join(["---"] * (head.count("|") - 1)) + " |"]
+    lines = table_head(head)
     for r in rows:
         opt = r.optimum
         lines.append("| " + " | ".join([
@@ -293,7 +301,7 @@ def format_tables(rows: list[Row], passes: int) -> str:
              f"| χ² after {passes}: LAGO | best χ² in {passes}: tree "
              f"| best χ² in {passes}: LAGO |")
     lines += ["", f"H₂O offline (`solve_offline(graph, {passes}, init=...)`), pass 0 = the start:",
-              "", head2, "| " + " | ".join(["---"] * (head2.count("|") - 1)) + " |"]
+              "", *table_head(head2)]
     for r in rows:
         opt = r.optimum
         tree, lg = r.h2o.get("tree", []), r.h2o.get("lago", [])
@@ -308,8 +316,8 @@ def format_tables(rows: list[Row], passes: int) -> str:
     head3 = ("| graph | Ω_x size | Ω_x nnz | "
              + " | ".join(f"Ω_x solve ms: {m}" for m in methods) + " | "
              + " | ".join(f"LAGO ms: {m}" for m in methods) + " |")
-    lines += ["", "Sparse factorizations (`h2o_slam.core.lago.solve_spd`; median ms):", "", head3,
-              "| " + " | ".join(["---"] * (head3.count("|") - 1)) + " |"]
+    lines += ["", "Sparse factorizations (`h2o_slam.core.lago.solve_spd`; median ms):", "",
+              *table_head(head3)]
     for r in rows:
         lines.append("| " + " | ".join(
             [r.name, str(r.omega_x[0]), str(r.omega_x[1])]

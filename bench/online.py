@@ -46,7 +46,6 @@ import math
 import os
 import subprocess
 import sys
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -54,7 +53,14 @@ from types import ModuleType
 from typing import Any
 
 import numpy as np
-from results_md import REPO, add_graph_arguments, publish, results_path, select_graphs
+from results_md import (
+    REPO,
+    add_graph_arguments,
+    publish,
+    results_path,
+    run_graphs,
+    select_graphs,
+)
 
 from h2o_slam.core.errors import H2OError
 from h2o_slam.core.graph import PoseGraph, chi2, edge_chi2
@@ -865,17 +871,8 @@ def run(data: Path, names: list[str] | None, budgets_ms: list[float], timeout_s:
     paths = select_graphs("online.py", data, names)
     if isinstance(paths, int):
         return paths
-    with tempfile.TemporaryDirectory(prefix="h2o-online-") as tmp:
-        target = out_dir if out_dir is not None else Path(tmp)
-        target.mkdir(parents=True, exist_ok=True)
-        rows, skipped = [], []
-        for p in paths:
-            try:
-                rows.append(bench_graph(p, target, budgets_ms, timeout_s, skip_isam2,
-                                        plots, period_ms))
-            except H2OError as err:  # the input itself cannot be read: no solver can run
-                print(f"online.py: skipping {p.name}: {err}", file=sys.stderr)
-                skipped.append(f"{p.stem}: {err}")
+    rows, skipped = run_graphs("online.py", paths, out_dir, lambda p, folder: bench_graph(
+        p, folder, budgets_ms, timeout_s, skip_isam2, plots, period_ms))
     publish(render_section(rows, budgets_ms, skipped, period_ms), results, SECTION)
     return 0
 

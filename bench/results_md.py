@@ -7,7 +7,12 @@ import argparse
 import shlex
 import subprocess
 import sys
+import tempfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
+
+Row = TypeVar("Row")
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "posegraphs"
@@ -102,3 +107,32 @@ def publish(section: str, path: Path | None, heading: str) -> None:
     if path is not None:
         replace_section(path, heading, section)
         print(f"written to {path}", file=sys.stderr)
+
+
+def run_graphs(prog: str, paths: list[Path], out_dir: Path | None,
+               bench_one: Callable[[Path, Path], Row]) -> tuple[list[Row], list[str]]:
+    """``bench_one(graph, folder)`` for each graph, writing into ``out_dir`` (a temporary
+    folder when None); a graph whose file cannot be read is skipped and listed.
+
+    Returns:
+        the rows of the graphs that ran, and ``"stem: reason"`` for each one skipped.
+    """
+    from h2o_slam.core.errors import H2OError
+
+    rows: list[Row] = []
+    skipped: list[str] = []
+    with tempfile.TemporaryDirectory(prefix=f"h2o-{Path(prog).stem}-") as tmp:
+        target = out_dir if out_dir is not None else Path(tmp)
+        target.mkdir(parents=True, exist_ok=True)
+        for path in paths:
+            try:
+                rows.append(bench_one(path, target))
+            except H2OError as err:  # the input itself cannot be read: no solver can run
+                print(f"{prog}: skipping {path.name}: {err}", file=sys.stderr)
+                skipped.append(f"{path.stem}: {err}")
+    return rows, skipped
+
+
+def table_head(head: str) -> list[str]:
+    """A markdown table's header line ``| a | b |`` and its ``| --- | --- |`` rule."""
+    return [head, "| " + " | ".join(["---"] * (head.count("|") - 1)) + " |"]

@@ -21,7 +21,6 @@ import os
 import platform
 import subprocess
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from importlib import metadata
@@ -29,10 +28,18 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from results_md import add_graph_arguments, command, publish, results_path, revision, select_graphs
+from results_md import (
+    add_graph_arguments,
+    command,
+    publish,
+    results_path,
+    revision,
+    run_graphs,
+    select_graphs,
+    table_head,
+)
 
 from h2o_slam.core import geometry as geo
-from h2o_slam.core.errors import H2OError
 from h2o_slam.core.graph import EdgeKind, PoseGraph, chi2
 from h2o_slam.io.g2o import read_g2o
 
@@ -293,7 +300,7 @@ def format_tables(results: list[GraphResult]) -> str:
             "| offline χ² | offline χ²/opt | offline s "
             "| LM χ² | LM χ²/opt | LM s | LM iters "
             "| exact / LM time | offline / LM time |")
-    lines = [head, "| " + " | ".join(["---"] * (head.count("|") - 1)) + " |"]
+    lines = table_head(head)
     for r in results:
         opt = r.optimum
         row = [r.name, str(r.nodes), str(r.edges), _num(r.chi2_initial, ".6g")]
@@ -310,8 +317,7 @@ def format_tables(results: list[GraphResult]) -> str:
                   "| exact: 2·GTSAM error | offline: 2·GTSAM error | LM build s "
                   "| exact: report χ² / ours | offline: report χ² / ours "
                   "| exact process s | offline process s |")
-    lines += ["", "Checks:", "", check_head,
-              "| " + " | ".join(["---"] * (check_head.count("|") - 1)) + " |"]
+    lines += ["", "Checks:", "", *table_head(check_head)]
     for r in results:
         lm = r.lm
         row = [r.name, "SE(2)" if r.planar else "SE(3)", _cell(lm, lm.chi2, ".10g"),
@@ -397,16 +403,8 @@ def run(data: Path, names: list[str] | None, timeout_s: float, out_dir: Path | N
     paths = select_graphs("solvers.py", data, names)
     if isinstance(paths, int):
         return paths
-    with tempfile.TemporaryDirectory(prefix="h2o-bench-") as tmp:
-        target = out_dir if out_dir is not None else Path(tmp)
-        target.mkdir(parents=True, exist_ok=True)
-        rows, skipped = [], []
-        for p in paths:
-            try:
-                rows.append(bench_graph(p, target, timeout_s))
-            except H2OError as err:  # the input itself cannot be read: no solver can run
-                print(f"solvers.py: skipping {p.name}: {err}", file=sys.stderr)
-                skipped.append(f"{p.stem}: {err}")
+    rows, skipped = run_graphs("solvers.py", paths, out_dir,
+                               lambda p, folder: bench_graph(p, folder, timeout_s))
     publish(render_section(rows, skipped), results, SECTION)
     return 0
 
