@@ -22,9 +22,10 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from h2o_slam.core import geometry as geo
+from h2o_slam.core.compiled import kernel
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH
-from h2o_slam.core.jacobians import endpoint_jacobians
+from h2o_slam.core.jacobians import endpoint_jacobians_one
 from h2o_slam.core.solver import H2OSolver
 from h2o_slam.core.spd import SPDFactor
 
@@ -52,9 +53,9 @@ class ExactSystem:
     def linearize(self) -> WorldLinearization:
         """Every edge linearized at the solver's current estimate."""
         R, x = self.solver.world_poses()
-        system, J, r = self._system(R, x)
-        data, g = system.assemble(J, r)
-        return WorldLinearization(R, x, system, data, g, float(np.sum(r * r)))
+        system = self._system()
+        data, g, chi2 = system.normal_equations(self.solver, R, x)
+        return WorldLinearization(R, x, system, data, g, chi2)
 
     def step(self, damping: float = 0.0, lin: WorldLinearization | None = None
              ) -> tuple[Array, np.ndarray]:
@@ -86,7 +87,7 @@ class ExactSystem:
         """
         step = self._world_step(lin, damping)
         # set_world_poses renormalizes the local rotations it derives.
-        self.solver.tree.set_world_poses(geo.so3_exp(step[:, 3:]) @ lin.R, lin.x + step[:, :3])
+        self.solver.tree.set_world_poses(*_retracted(lin.R, lin.x, step))
 
     def _world_step(self, lin: WorldLinearization, damping: float) -> Array:
         """The damped Gauss–Newton step ``(δx, ω)`` of every node, ``(n, 6)`` (zero where held)."""
@@ -100,30 +101,18 @@ class ExactSystem:
         """``(H, g, free)`` at the current estimate: the full symmetric ``H = JᵀJ`` and
         ``g = Jᵀr`` over the free nodes' world perturbations (node-major, ``p`` per node),
         and the free nodes."""
-        system, J, r = self._system(*self.solver.world_poses())
-        data, g = system.assemble(J, r)
+        system = self._system()
+        data, g, _ = system.normal_equations(self.solver, *self.solver.world_poses())
         return system.matrix(data), g, system.free
 
-    def _system(self, R: Array, x: Array) -> tuple[WorldSystem, Array, Array]:
-        """The (kept) system, the whitened Jacobians ``[J_a | J_b]`` of every edge w.r.t.
-        world perturbations of its endpoints, shape ``(m, p, 2p)``, and the whitened
-        residuals ``(m, p)``."""
+    def _system(self) -> WorldSystem:
+        """The system of the solver's edges and free nodes: the kept one while they stay."""
         s = self.solver
-        kind, a, b = s.kind, s.a, s.b
-        glob = a == EARTH
-        a_idx = np.where(glob, 0, a)
-        Ra = np.where(glob[:, None, None], np.eye(3), R[a_idx])
-        xa = np.where(glob[:, None], 0.0, x[a_idx])
-        e, Ja, Jb = endpoint_jacobians(kind, Ra, xa, R[b], x[b], s.meas_R, s.meas_t)
-        dof = s.dof
-        r = np.einsum("mij,mj->mi", s.W, e[:, dof])
-        J = s.W @ np.concatenate([Ja[:, dof[:, None], dof[None, :]],
-                                  Jb[:, dof[:, None], dof[None, :]]], axis=2)
-        free = self._free_nodes(a, b)
+        free = self._free_nodes(s.a, s.b)
         system = self._world
-        if system is None or not system.fits(a, b, free, s.num_nodes):
-            system = self._world = WorldSystem(a, b, free, s.num_nodes, s.p)
-        return system, J, r
+        if system is None or not system.fits(s.a, s.b, free, s.num_nodes):
+            system = self._world = WorldSystem(s.a, s.b, free, s.num_nodes, s.p)
+        return system
 
     def _free_nodes(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         # A subtree top moves only if some edge's root is the earth: a global edge into its
@@ -278,16 +267,13 @@ class WorldSystem:
         return (num_nodes == self.num_nodes and np.array_equal(free, self.free)
                 and np.array_equal(a, self.a) and np.array_equal(b, self.b))
 
-    def assemble(self, J: Array, r: Array, damping: float = 0.0) -> tuple[Array, Array]:
-        """Values of ``H + damping · diag(H)`` in the pattern's order, and ``g``, from the
-        whitened Jacobians ``[J_a | J_b]`` ``(m, p, 2p)`` and residuals ``(m, p)``."""
-        blocks = np.swapaxes(J, 1, 2) @ J  # (m, 2p, 2p)
-        # With float weights bincount sums in float64 (numpy's stubs say int).
-        data = np.asarray(np.bincount(self._scatter, blocks.ravel(), minlength=self.nnz + 1),
-                          dtype=float)
-        grad = np.einsum("mki,mk->mi", J, r).ravel()
-        g = np.asarray(np.bincount(self._gather, grad, minlength=self.size + 1), dtype=float)
-        return self.damped(data[: self.nnz], damping), g[: self.size]
+    def normal_equations(self, solver: H2OSolver, R: Array, x: Array
+                         ) -> tuple[Array, Array, float]:
+        """Values of ``H = JᵀJ`` in the pattern's order, ``g = Jᵀr`` and ``χ² = rᵀr`` of
+        ``solver``'s edges (whitened) at the world poses ``(R, x)``, in one compiled pass."""
+        return _normal_equations(solver.kind, solver.a, solver.b, R, x, solver.meas_R,
+                                 solver.meas_t, solver.W, solver.dof, self._scatter,
+                                 self._gather, self.nnz, self.size)
 
     def damped(self, data: Array, damping: float) -> Array:
         """``data`` of ``H + damping · diag(H)`` (a copy when ``damping > 0``)."""
@@ -310,3 +296,64 @@ class WorldSystem:
         except np.linalg.LinAlgError:
             H = self.matrix(data)
             return spla.lsqr(H, g, atol=1e-14, btol=1e-14, iter_lim=10 * self.size)[0]
+
+
+@kernel
+def _normal_equations(kind: np.ndarray, a: np.ndarray, b: np.ndarray, R: Array, x: Array,
+                      meas_R: Array, meas_t: Array, W: Array, dof: np.ndarray,
+                      scatter: np.ndarray, gather: np.ndarray, nnz: int, size: int
+                      ) -> tuple[Array, Array, float]:
+    """Every edge's whitened ``J = W [J_a | J_b]`` (``p × 2p``, world perturbations of its
+    endpoints) and ``r = W e``, summed into ``H``'s values through ``scatter`` and into
+    ``g`` through ``gather`` (index ``nnz`` / ``size``: a held node's entry, dropped)."""
+    p = len(dof)
+    q = 2 * p
+    data = np.zeros(nnz + 1)
+    g = np.zeros(size + 1)
+    chi2 = 0.0
+    eye, zero = np.eye(3), np.zeros(3)
+    J = np.empty((p, q))
+    r = np.empty(p)
+    for e in range(len(kind)):
+        glob = a[e] == EARTH
+        err, Ja, Jb = endpoint_jacobians_one(
+            kind[e], eye if glob else R[a[e]], zero if glob else x[a[e]], R[b[e]], x[b[e]],
+            meas_R[e], meas_t[e])
+        We = W[e]
+        for i in range(p):
+            acc = 0.0
+            for k in range(p):
+                acc += We[i, k] * err[dof[k]]
+            r[i] = acc
+            chi2 += acc * acc
+            for j in range(p):
+                sa = 0.0
+                sb = 0.0
+                for k in range(p):
+                    sa += We[i, k] * Ja[dof[k], dof[j]]
+                    sb += We[i, k] * Jb[dof[k], dof[j]]
+                J[i, j] = sa
+                J[i, p + j] = sb
+        base = e * q * q
+        for u in range(q):
+            grad = 0.0
+            for i in range(p):
+                grad += J[i, u] * r[i]
+            g[gather[e * q + u]] += grad
+            for v in range(q):
+                acc = 0.0
+                for i in range(p):
+                    acc += J[i, u] * J[i, v]
+                data[scatter[base + u * q + v]] += acc
+    return data[:nnz], g[:size], chi2
+
+
+@kernel
+def _retracted(R: Array, x: Array, step: Array) -> tuple[Array, Array]:
+    """World poses moved by ``step`` ``(δx, ω)`` each: ``R ← Exp(ω) R``, ``x ← x + δx``."""
+    R_new = np.empty_like(R)
+    x_new = np.empty_like(x)
+    for i in range(len(R)):
+        geo.mul3_into(geo.so3_exp_one(step[i, 3:]), R[i], R_new[i])
+        x_new[i] = x[i] + step[i, :3]
+    return R_new, x_new

@@ -220,12 +220,8 @@ class PoseTree:
     def set_world_poses(self, R_world: Array, t_world: Array) -> None:
         """Set every local transform so that the world poses become ``(R_world, t_world)``."""
         n = self.n
-        parent = self.parent[:n]
-        top = parent == EARTH
-        p = np.where(top, 0, parent)
-        R_loc, t_loc = geo.between(R_world[p], t_world[p], R_world, t_world)
-        self.R[:n] = geo.renormalize(np.where(top[:, None, None], R_world, R_loc))
-        self.t[:n] = np.where(top[:, None], t_world, t_loc)
+        _set_local(self.parent[:n], np.ascontiguousarray(R_world, dtype=float),
+                   np.ascontiguousarray(t_world, dtype=float), self.R, self.t)
 
     def tops(self) -> np.ndarray:
         """The top of each node's subtree (its ancestor just below the earth)."""
@@ -275,6 +271,22 @@ def _compose_ancestry(parent: np.ndarray, R_loc: Array, t_loc: Array, node: int,
         geo.add_mulv3(R, t_loc[i], t)
         geo.mul3_into(R, R_loc[i], tmp)
         R[:] = tmp
+
+
+@kernel
+def _set_local(parent: np.ndarray, R_world: Array, t_world: Array, R: Array, t: Array) -> None:
+    """Local transforms ``(R, t)`` of every node under its parent from world poses; each
+    local rotation renormalized (:func:`~h2o_slam.core.geometry.renormalize`)."""
+    loc = np.empty((3, 3))
+    for i in range(len(parent)):
+        p = parent[i]
+        if p == EARTH:
+            geo.renormalize_into(R_world[i], R[i])
+            t[i] = t_world[i]
+        else:
+            geo.mul3t_into(R_world[p], R_world[i], loc)
+            geo.renormalize_into(loc, R[i])
+            t[i] = geo.mulv3t(R_world[p], t_world[i] - t_world[p])
 
 
 @kernel

@@ -234,44 +234,6 @@ def test_batch_with_gps_edges_moves_the_subtree_top():
     assert np.allclose(x_world, expected, rtol=1e-5, atol=1e-6)
 
 
-@pytest.mark.parametrize("planar", [True, False])
-def test_exact_system_reused_across_steps_gives_the_fresh_step(planar):
-    """The pattern and symbolic factorization kept from earlier iterations give the step a
-    newly built system gives, damped or not, and H is the dense JᵀJ with its diagonal
-    scaled by 1 + damping."""
-    graph = random_graph(31, planar, n=12, loops=6, gps=2, orientation=1)
-    solver, _ = build_solver(graph, UNCAPPED)
-    exact = ExactSystem(solver)
-    for damping in (0.0, 1e-3, 0.0):
-        step, nodes = exact.step(damping)
-        solver.apply_step(nodes, step)  # the kept system moves on
-        kept = exact.step(damping)
-        H, g, free = exact.normal_equations()
-        fresh = ExactSystem(solver).step(damping)  # a system built at the same estimate
-        assert np.array_equal(kept[1], fresh[1]) and np.array_equal(free, fresh[1])
-        np.testing.assert_allclose(kept[0], fresh[0], rtol=1e-12, atol=1e-12)
-        system, J, r = exact._system(*solver.world_poses())
-        dense = np.zeros((len(r) * solver.p, len(free) * solver.p))
-        col = np.full(solver.num_nodes + 1, -1)
-        col[free] = np.arange(len(free))
-        for k, (a, b) in enumerate(zip(solver.a, solver.b, strict=True)):
-            for end, c in ((0, col[a]), (1, col[b])):
-                if c >= 0:
-                    p = solver.p
-                    dense[k * p:(k + 1) * p, c * p:(c + 1) * p] = J[k, :, end * p:(end + 1) * p]
-        H_dense = dense.T @ dense
-        np.testing.assert_allclose(H.toarray(), H_dense, rtol=1e-12, atol=1e-9)
-        np.testing.assert_allclose(g, dense.T @ r.ravel(), rtol=1e-12, atol=1e-9)
-        data, _ = system.assemble(J, r, damping)
-        # The pattern is CSC with sorted, distinct rows in every column (what CHOLMOD reads).
-        for j in range(system.size):
-            rows = system.indices[system.indptr[j]:system.indptr[j + 1]]
-            assert np.all(np.diff(rows) > 0) and rows[-1] == j
-        damped = H_dense + damping * np.diag(np.diag(H_dense))
-        np.testing.assert_allclose(system.matrix(data).toarray(), damped, rtol=1e-12,
-                                   atol=1e-9)
-
-
 def _gauss_newton_reference_all(solver, graph):
     nodes = np.arange(solver.num_nodes)
     J = _numeric_jacobian(solver, graph, nodes)
