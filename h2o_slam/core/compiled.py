@@ -98,6 +98,4 @@ def warm_up() -> None:
         tree.tops()
         tree.world_pose(tree.n - 1)
         converge_exact(solver, 2)  # the sparse factorization's first uses
-    # The first solve of a process otherwise pays ~4 ms importing scipy's graph module for
-    # the spanning tree: more than GTSAM's whole LM on a 9-node graph.
     spanning_parents(2, np.array([0]), np.array([1]))

@@ -358,16 +358,40 @@ def spanning_parents(
     Each connected component hangs from the earth at its first node (or at ``roots``).
     Only relative edges should be passed: GPS edges make poor tree edges (thesis 3.3.10).
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import breadth_first_order
-
-    adj = coo_matrix((np.ones(len(a)), (a, b)), shape=(num_nodes, num_nodes)).tocsr()
+    # Adjacency in CSR form, each node's neighbours in the order scipy's undirected
+    # breadth-first search visits them (edges out of it by target, then edges into it by
+    # source), so that the forest does not depend on which implementation built it.
+    a = np.asarray(a, dtype=np.int64)
+    b = np.asarray(b, dtype=np.int64)
+    ends = np.concatenate([a, b])
+    others = np.concatenate([b, a])
+    incoming = np.repeat([0, 1], len(a))
+    order = np.lexsort((others, incoming, ends))
+    first = np.searchsorted(ends[order], np.arange(num_nodes + 1))
+    starts = np.array(list(roots or []) + list(range(num_nodes)), dtype=np.int64)
     parent = np.full(num_nodes, -2, dtype=np.int64)
-    starts = list(roots or []) + list(range(num_nodes))
+    _breadth_first_forest(first, others[order], starts, parent)
+    return parent
+
+
+@kernel
+def _breadth_first_forest(first: np.ndarray, neighbours: np.ndarray, starts: np.ndarray,
+                          parent: np.ndarray) -> None:
+    """Breadth-first trees from each start not yet reached (``parent`` -2: unreached); a
+    tree's start hangs from the earth."""
+    queue = np.empty(len(parent), dtype=np.int64)
     for s in starts:
         if parent[s] != -2:
             continue
-        order, pred = breadth_first_order(adj, s, directed=False, return_predecessors=True)
-        parent[order] = pred[order]
         parent[s] = EARTH
-    return parent
+        queue[0] = s
+        head, tail = 0, 1
+        while head < tail:
+            node = queue[head]
+            head += 1
+            for k in range(first[node], first[node + 1]):
+                other = neighbours[k]
+                if parent[other] == -2:
+                    parent[other] = node
+                    queue[tail] = other
+                    tail += 1

@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import breadth_first_order
 
 from h2o_slam.core import geometry as geo
-from h2o_slam.core.tree import EARTH, PoseTree
+from h2o_slam.core.tree import EARTH, PoseTree, spanning_parents
 
 
 def _orthonormality_error(R: np.ndarray) -> float:
@@ -59,3 +63,32 @@ def test_one_world_pose_is_the_composition_of_its_ancestry() -> None:
         R, t = tree.world_pose(node)
         np.testing.assert_allclose(R, R_all[node], atol=1e-12)
         np.testing.assert_allclose(t, t_all[node], atol=1e-12)
+
+
+def _scipy_forest(n, a, b, roots):
+    """The breadth-first forest scipy's undirected search gives, start by start."""
+    adj = coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n)).tocsr()
+    parent = np.full(n, -2, dtype=np.int64)
+    for s in list(roots) + list(range(n)):
+        if parent[s] == -2:
+            order, pred = breadth_first_order(adj, s, directed=False, return_predecessors=True)
+            parent[order] = pred[order]
+            parent[s] = EARTH
+    return parent
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.data())
+def test_spanning_forest_is_scipys_breadth_first_forest(data):
+    """Same parents as scipy's search (so the tree start does not depend on which built it),
+    on graphs with repeated edges, self-loops, isolated nodes and given roots."""
+    n = data.draw(st.integers(1, 30))
+    pairs = data.draw(st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, n - 1)),
+                               max_size=60))
+    roots = data.draw(st.lists(st.integers(0, n - 1), max_size=3, unique=True))
+    a = np.array([p[0] for p in pairs], dtype=np.int64)
+    b = np.array([p[1] for p in pairs], dtype=np.int64)
+    parent = spanning_parents(n, a, b, roots)
+    np.testing.assert_array_equal(parent, _scipy_forest(n, a, b, roots))
+    assert not roots or parent[roots[0]] == EARTH  # later roots may lie in its tree
+    assert np.all((parent >= EARTH) & (parent < n))
