@@ -83,6 +83,31 @@ def renormalize(R: Array) -> Array:
     return np.asarray(_renormalize_many(flat)).reshape(R.shape)
 
 
+def best_fit_transform(
+    P: Array, Q: Array, weights: Array, planar: bool
+) -> tuple[Array, Array]:
+    """Rigid ``(R, t)`` minimizing ``Σ wᵢ ‖R pᵢ + t − qᵢ‖²`` (weighted Kabsch / Umeyama).
+
+    Planar: a rotation about ``z`` only, fitted to the x–y coordinates.
+    """
+    w = np.asarray(weights, dtype=float) / np.sum(weights)
+    p0 = w @ P
+    q0 = w @ Q
+    Pc, Qc = P - p0, Q - q0
+    if planar:
+        yaw = np.arctan2(np.sum(w * (Pc[:, 0] * Qc[:, 1] - Pc[:, 1] * Qc[:, 0])),
+                         np.sum(w * (Pc[:, 0] * Qc[:, 0] + Pc[:, 1] * Qc[:, 1])))
+        R = yaw_to_matrix(yaw)
+        t = q0 - R @ p0
+        t[2] = 0.0
+        return R, t
+    cov = (Qc * w[:, None]).T @ Pc
+    u, _, vt = np.linalg.svd(cov)
+    fix = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    R = u @ fix @ vt
+    return R, q0 - R @ p0
+
+
 # -- compiled kernels: one rotation or pose each; the functions above loop over them ------
 
 

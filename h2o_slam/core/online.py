@@ -36,7 +36,7 @@ from h2o_slam.core.converge import BACKGROUNDS, Converger, Solution
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH, EdgeKind
 from h2o_slam.core.solver import H2OSolver, SolverConfig
-from h2o_slam.core.timing import CostModel
+from h2o_slam.core.timing import CostModel, UpdateCost
 
 
 @dataclass(frozen=True)
@@ -145,60 +145,6 @@ class StepReport:
     balanced: bool = True
     merged: int = 0
     predictions: list[tuple[float, float]] = field(default_factory=list)
-
-
-class UpdateCost:
-    """Seconds of a single-edge update with domain size ``d`` solving ``s`` of its nodes.
-
-    Full updates (``s = d``) and interpolated ones (``s < d``, 3.3.6) are modelled apart:
-    both are linear in ``d`` (the path is linearized and moved whole either way), but
-    merging and distributing add their own fixed and per-node costs, so an interpolated
-    update is never cheaper than the full one of the same domain (measured on kitti_00:
-    full 0.45 / 3.9 ms, interpolated 1.2 / 8 ms for d = 62 / 1443). One model of
-    ``(1, d, s)`` for both cannot tell ``d`` from ``s`` in full updates and learnt a zero
-    domain slope, predicting 1 ms for 11 ms updates.
-    """
-
-    def __init__(self) -> None:
-        self.full = CostModel((2e-4, 3e-6), (50.0,))
-        self.interpolated = CostModel((6e-4, 5e-6, 2e-6), (200.0, 10.0))
-
-    def _model(self, d: int, s: int) -> tuple[CostModel, tuple[float, ...]]:
-        if s >= d:
-            return self.full, (d,)
-        return self.interpolated, (d, s)
-
-    def predict(self, d: int, s: int) -> float:
-        """Predicted seconds for domain size ``d`` solving ``s`` nodes."""
-        model, sizes = self._model(d, s)
-        return model.predict(*sizes)
-
-    def predict_with_margin(self, d: int, s: int, safety: float) -> float:
-        """:meth:`predict` times the margin its model needs."""
-        model, sizes = self._model(d, s)
-        return model.predict(*sizes) * model.margin(safety)
-
-    def update(self, d: int, s: int, seconds: float) -> None:
-        """Fold in one measured update."""
-        model, sizes = self._model(d, s)
-        model.update(seconds, *sizes)
-
-    def relax_margins(self) -> None:
-        """Shrink the learnt margins: called when nothing fitted, since only updates that
-        run produce the samples that would shrink them."""
-        for model in (self.full, self.interpolated):
-            model.spread = max(1.1, 0.9 * model.spread)
-
-    def largest_fitting(self, d: int, cap: int, remaining_s: float, safety: float) -> int:
-        """The most nodes (≤ ``cap``) to solve whose predicted cost, with margin, fits
-        ``remaining_s`` (0: none)."""
-        if cap >= d and self.predict_with_margin(d, d, safety) <= remaining_s:
-            return d
-        c0, c1, c2 = self.interpolated.coef
-        room = remaining_s / self.interpolated.margin(safety) - c0 - c1 * d
-        if room < 0.0:
-            return 0
-        return int(min(cap, d - 1, room / c2))
 
 
 class OnlineH2O:
@@ -479,7 +425,7 @@ class OnlineH2O:
         P = np.array([solver.world_pose(n)[1] for n in nodes])
         Q = solver.meas_t[edges]
         w = np.array([np.trace(solver.info[e][:3, :3]) for e in edges])
-        R_T, t_T = best_fit_transform(P, Q, w, planar=solver.planar)
+        R_T, t_T = geo.best_fit_transform(P, Q, w, planar=solver.planar)
         self.converger.generation += 1
         tree = solver.tree
         R_top, tree.t[top] = geo.compose(R_T, t_T, tree.R[top], tree.t[top])
@@ -703,28 +649,3 @@ class OnlineH2O:
         for e in batch:
             self._priority[e] = 0.0
         return True
-
-
-def best_fit_transform(
-    P: Array, Q: Array, weights: Array, planar: bool
-) -> tuple[Array, Array]:
-    """Rigid ``(R, t)`` minimizing ``Σ wᵢ ‖R pᵢ + t − qᵢ‖²`` (weighted Kabsch / Umeyama).
-
-    Planar: a rotation about ``z`` only, fitted to the x–y coordinates.
-    """
-    w = np.asarray(weights, dtype=float) / np.sum(weights)
-    p0 = w @ P
-    q0 = w @ Q
-    Pc, Qc = P - p0, Q - q0
-    if planar:
-        yaw = np.arctan2(np.sum(w * (Pc[:, 0] * Qc[:, 1] - Pc[:, 1] * Qc[:, 0])),
-                         np.sum(w * (Pc[:, 0] * Qc[:, 0] + Pc[:, 1] * Qc[:, 1])))
-        R = geo.yaw_to_matrix(yaw)
-        t = q0 - R @ p0
-        t[2] = 0.0
-        return R, t
-    cov = (Qc * w[:, None]).T @ Pc
-    u, _, vt = np.linalg.svd(cov)
-    fix = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    R = u @ fix @ vt
-    return R, q0 - R @ p0

@@ -11,12 +11,15 @@ from typing import Any
 
 import numpy as np
 
+from h2o_slam.core.geometry import best_fit_transform
+
 
 def align_planar(est_xy: Any, truth_xy: Any) -> tuple[np.ndarray, np.ndarray]:
     """Rotation ``(2, 2)`` and translation ``(2,)`` that best map ``est`` onto ``truth``.
 
-    Least squares over corresponding points (Umeyama/Horn without scale): minimizes
-    ``Σ ‖R eᵢ + t − gᵢ‖²``. Points are ``(N, 2)`` or wider (only x, y are used).
+    Least squares over corresponding points (Umeyama/Horn without scale, through
+    :func:`~h2o_slam.core.geometry.best_fit_transform`): minimizes ``Σ ‖R eᵢ + t − gᵢ‖²``.
+    Points are ``(N, 2)`` or wider (only x, y are used).
 
     Raises:
         ValueError: fewer than two points, or shapes that do not match.
@@ -25,12 +28,10 @@ def align_planar(est_xy: Any, truth_xy: Any) -> tuple[np.ndarray, np.ndarray]:
     b = np.asarray(truth_xy, dtype=float)[:, :2]
     if a.shape != b.shape or len(a) < 2:
         raise ValueError(f"alignment needs two or more matching points, got {a.shape}, {b.shape}")
-    mean_a, mean_b = a.mean(axis=0), b.mean(axis=0)
-    u, _, vt = np.linalg.svd((a - mean_a).T @ (b - mean_b))
-    # The sign fix keeps a proper rotation when the best orthogonal map is a reflection.
-    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
-    R = vt.T @ np.diag([1.0, d]) @ u.T
-    return R, mean_b - R @ mean_a
+    pad = np.zeros((len(a), 1))
+    R, t = best_fit_transform(np.hstack([a, pad]), np.hstack([b, pad]), np.ones(len(a)),
+                              planar=True)
+    return R[:2, :2], t[:2]
 
 
 def ate_m(est_xy: Any, truth_xy: Any) -> float:

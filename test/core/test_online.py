@@ -9,10 +9,12 @@ from scipy.sparse.csgraph import shortest_path
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core import solver as solver_module
+from h2o_slam.core.geometry import best_fit_transform
 from h2o_slam.core.graph import EARTH, EdgeKind, chi2, make_graph, odometry_chain
 from h2o_slam.core.modes import add_arrival, arrivals, solve_offline, solve_online
-from h2o_slam.core.online import OnlineConfig, OnlineH2O, UpdateCost, best_fit_transform
+from h2o_slam.core.online import OnlineConfig, OnlineH2O
 from h2o_slam.core.solver import SolverConfig
+from h2o_slam.core.timing import UpdateCost
 from h2o_slam.io.synthetic import grid3d, manhattan
 
 
