@@ -34,10 +34,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from vo_full import CircularStereoVO, FullStereoVO  # noqa: E402
 
+from h2o_slam.core.geometry import planar_between, wrap_angle  # noqa: E402
 from hybrid_vo.camera import CameraIntrinsics, CameraMounting  # noqa: E402
 from hybrid_vo.frames import StereoFrame  # noqa: E402
 from hybrid_vo.odometer import HybridOdometer, OdometerConfig  # noqa: E402
-from hybrid_vo.world import integrate, relative_pose, wrap_angle  # noqa: E402
+from hybrid_vo.world import integrate  # noqa: E402
 
 #: KITTI's left grey camera above the road (their set-up description).
 KITTI_CAMERA_HEIGHT_M = 1.65
@@ -93,7 +94,7 @@ def segment_drift(
         i, j = first[ok], last[ok]
         if len(i) == 0:
             continue
-        err = relative_pose(relative_pose(est[i], est[j]), relative_pose(truth[i], truth[j]))
+        err = planar_between(planar_between(est[i], est[j]), planar_between(truth[i], truth[j]))
         t_err.append(np.hypot(err[:, 0], err[:, 1]) / length)
         r_err.append(np.abs(err[:, 2]) / length)
     if not t_err:
@@ -131,7 +132,7 @@ def simulated_wheels(
 ) -> np.ndarray:
     """``(N, 3)`` wheel increments (row 0 zero) from the true path, as ``world._wheel`` does."""
     rng = np.random.default_rng(seed)
-    true = relative_pose(truth[:-1], truth[1:])
+    true = planar_between(truth[:-1], truth[1:])
     ds = np.hypot(true[:, 0], true[:, 1])
     yaw = true[:, 2] + yaw_sigma_rad_per_sqrt_m * np.sqrt(ds) * rng.standard_normal(len(ds))
     if hallucinated_turn_rad:
@@ -178,7 +179,7 @@ def run_kitti(
             cpu["hybrid"].append(t1 - t0)
             cpu["full"].append(t2 - t1)
             cpu["klt"].append(t3 - t2)
-    true_inc = relative_pose(truth[:-1], truth[1:])
+    true_inc = planar_between(truth[:-1], truth[1:])
     incs = {"wheel": wheel[1:]}
     incs.update({k: np.array(v)[1:] for k, v in inc.items()})
     poses = {k: integrate(truth[0], v) for k, v in incs.items()}

@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from h2o_slam.core.geometry import planar_between, planar_compose, wrap_angle
 from hybrid_vo.camera import CameraIntrinsics, CameraMounting, pixel_rays_base
 from hybrid_vo.errors import ConfigError
 from hybrid_vo.frames import StereoFrame
@@ -51,33 +52,12 @@ GPS_DATUM = (37.4275, -122.1697, 30.0)
 # ----------------------------------------------------------------------------- geometry
 
 
-def wrap_angle(angle_rad: FloatArray | float) -> FloatArray:
-    """Angles wrapped into ``[-π, π)``."""
-    return np.asarray((np.asarray(angle_rad) + np.pi) % (2.0 * np.pi) - np.pi)
-
-
-def relative_pose(a: FloatArray, b: FloatArray) -> FloatArray:
-    """``a⁻¹ b`` for planar poses ``(..., 3)``: b expressed in a's frame."""
-    dx = b[..., 0] - a[..., 0]
-    dy = b[..., 1] - a[..., 1]
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])], -1)
-
-
-def compose(a: FloatArray, d: FloatArray) -> FloatArray:
-    """``a ⊕ d`` for a planar pose ``a`` and an increment ``d`` in a's frame, ``(3,)``."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array(
-        [a[0] + c * d[0] - s * d[1], a[1] + s * d[0] + c * d[1], float(wrap_angle(a[2] + d[2]))]
-    )
-
-
 def integrate(start: FloatArray, increments: FloatArray) -> FloatArray:
     """Poses ``(N+1, 3)`` from a start pose and ``(N, 3)`` increments."""
     poses = np.empty((len(increments) + 1, 3))
     poses[0] = start
     for i, d in enumerate(increments):
-        poses[i + 1] = compose(poses[i], d)
+        poses[i + 1] = planar_compose(poses[i], d)
     return poses
 
 
@@ -290,7 +270,7 @@ class World:
         # As a dot product with the rays' fixed horizontal bearings in base_link (the pose only
         # turns them by its yaw): one multiply-add per pixel instead of atan2 and a wrap.
         rel = to_obj - yaw
-        if abs(float(wrap_angle(rel))) - half > self._max_bearing:
+        if abs(float(wrap_angle(np.asarray(rel)))) - half > self._max_bearing:
             return img, depth  # outside the camera's horizontal field of view
         cand = (
             self._bearing_x * np.float32(math.cos(rel))
@@ -699,7 +679,7 @@ def _loops(
         if dist.size == 0 or dist.min() > cfg.loop_radius_m:
             continue
         j = int(np.argmin(dist))
-        meas = relative_pose(truth[j], truth[i]) + rng.normal(0.0, 1.0, 3) * sig
+        meas = planar_between(truth[j], truth[i]) + rng.normal(0.0, 1.0, 3) * sig
         closures.append(
             LoopClosure(
                 j,

@@ -358,6 +358,25 @@ def wrap_angle(a: Array) -> Array:
     return out - 2.0 * np.pi * (out >= np.pi)
 
 
+def planar_between(a: Array, b: Array) -> Array:
+    """``a⁻¹ b`` for planar poses ``(..., 3)`` (x, y, yaw): ``b`` in the frame of ``a``."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])],
+                    axis=-1)
+
+
+def planar_compose(a: Array, d: Array) -> Array:
+    """``a ⊕ d`` for planar poses ``(..., 3)``: the increment ``d`` (in ``a``'s frame)
+    applied to ``a``."""
+    a, d = np.asarray(a, dtype=float), np.asarray(d, dtype=float)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack([a[..., 0] + c * d[..., 0] - s * d[..., 1],
+                     a[..., 1] + s * d[..., 0] + c * d[..., 1],
+                     wrap_angle(a[..., 2] + d[..., 2])], axis=-1)
+
+
 def quat_to_matrix(q: Array) -> Array:
     """Rotation matrices of quaternions ``(x, y, z, w)``; the quaternions are normalized first.
 

@@ -45,6 +45,7 @@ import numpy as np
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.errors import GraphError, InputError
+from h2o_slam.core.geometry import planar_between, planar_compose
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, edge_chi2
 from h2o_slam.core.modes import add_arrival, arrivals
 from h2o_slam.core.online import OnlineConfig, OnlineH2O, StepReport
@@ -180,21 +181,6 @@ class OdometryTrack:
         return int(self._stamps[self.size - 1]), pose
 
 
-def relative(a: Array, b: Array) -> Array:
-    """Planar pose of ``b`` in the frame of ``a`` (both ``(..., 3)``)."""
-    d = b[..., :2] - a[..., :2]
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1],
-                     geo.wrap_angle(b[..., 2] - a[..., 2])], axis=-1)
-
-
-def compose(a: Array, d: Array) -> Array:
-    """Planar ``a ⊕ d``."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array([a[0] + c * d[0] - s * d[1], a[1] + s * d[0] + c * d[1],
-                     float(geo.wrap_angle(a[2] + d[2]))])
-
-
 def planar_info(cov3: Array) -> Array:
     """6×6 information (error order x, y, z, rot x, rot y, rot z) of a planar covariance
     over ``(x, y, yaw)``."""
@@ -316,7 +302,7 @@ class Mapper:
         if not self.keyframes.stamps or self.continue_from is not None:
             return True
         cfg = self.config
-        d = relative(self.keyframes.odom[-1], pose)
+        d = planar_between(self.keyframes.odom[-1], pose)
         dt = (stamp_ns - self.keyframes.stamps[-1]) * 1e-9
         return bool((cfg.keyframe_distance_m and math.hypot(d[0], d[1]) >= cfg.keyframe_distance_m)
                     or (cfg.keyframe_angle_rad and abs(d[2]) >= cfg.keyframe_angle_rad)
@@ -330,7 +316,7 @@ class Mapper:
             kf.chain_cov.append(np.full((3, 3), np.nan))
         else:
             # Everything that can refuse the sample comes before anything is stored.
-            d = relative(kf.odom[previous], pose)
+            d = planar_between(kf.odom[previous], pose)
             cov = self.increment_covariance(d)
             info = self._information(planar_info, cov, "odometry_not_finite", "odometry increment")
             node = self.h2o.solver.num_nodes
@@ -423,7 +409,7 @@ class Mapper:
         if a == b:
             raise self.reject("loop_same_node",
                               f"loop closure joins node {a} to itself ({from_ref}, {to_ref})")
-        meas = compose(compose(carry_a, delta), relative(carry_b, np.zeros(3)))
+        meas = planar_compose(planar_compose(carry_a, delta), planar_between(carry_b, np.zeros(3)))
         if not np.all(np.isfinite(meas)):
             raise self.reject("loop_not_finite",
                               f"loop closure {a}->{b} carried onto keyframes is not finite")
@@ -453,7 +439,7 @@ class Mapper:
                 f"(tolerance {self.config.loop_stamp_tolerance_s} s)")
         if not self.track.covers(stamp):
             return node, np.zeros(3)
-        return node, relative(self.keyframes.odom[node], self.track.at(stamp))
+        return node, planar_between(self.keyframes.odom[node], self.track.at(stamp))
 
     def _gate(self, a: int, b: int, meas: Array, cov3: Array) -> None:
         if not math.isfinite(self.config.loop_gate_chi2):
@@ -463,18 +449,18 @@ class Mapper:
         if len(chain) == 0 or np.isnan(chain).any():
             return  # ends in different subtrees: nothing to weigh the error against
         odom = np.asarray(self.keyframes.odom[lo: hi + 1])
-        to_end = relative(odom[1:], odom[-1][None, :])
+        to_end = planar_between(odom[1:], odom[-1][None, :])
         ad = _adjoint_inverse(to_end)
         path_cov = np.einsum("kij,kjl,kml->im", ad, chain, ad)
         if a > b:  # the path covariance was built in the later node's frame
-            d = relative(odom[-1], odom[0])
+            d = planar_between(odom[-1], odom[0])
             ad_swap = _adjoint_inverse(d[None, :])[0]
             path_cov = ad_swap @ path_cov @ ad_swap.T
         R_a, t_a = self.h2o.solver.world_pose(a)
         R_b, t_b = self.h2o.solver.world_pose(b)
-        est = relative(np.array([t_a[0], t_a[1], geo.matrix_to_yaw(R_a)]),
+        est = planar_between(np.array([t_a[0], t_a[1], geo.matrix_to_yaw(R_a)]),
                        np.array([t_b[0], t_b[1], geo.matrix_to_yaw(R_b)]))
-        err = relative(meas, est)
+        err = planar_between(meas, est)
         with np.errstate(all="ignore"):
             try:
                 chi2 = float(err @ np.linalg.solve(cov3 + path_cov, err))
@@ -606,7 +592,7 @@ class Mapper:
         node = self.num_nodes - 1
         R, t = self.h2o.solver.world_pose(node)
         in_map = np.array([t[0], t[1], float(geo.matrix_to_yaw(R))])
-        return compose(in_map, relative(self.keyframes.odom[node], np.zeros(3)))
+        return planar_compose(in_map, planar_between(self.keyframes.odom[node], np.zeros(3)))
 
     def map_revision(self) -> int:
         """Bumped when the map moves as a whole (an exact solution merged, a subtree joined or
@@ -623,7 +609,7 @@ class Mapper:
             return None
         stamp, odom = self.track.latest()
         correction = self.map_to_odom() if map_to_odom is None else map_to_odom
-        return stamp, compose(correction, odom)
+        return stamp, planar_compose(correction, odom)
 
     # -- persistence --------------------------------------------------------------------------
 

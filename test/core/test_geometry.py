@@ -332,3 +332,22 @@ def test_planar_rotations_stay_exactly_about_z():
     for M in (R, R_all):
         assert np.all(M[:, 2, 2] == 1.0)
         assert not np.any(M[:, 2, :2]) and not np.any(M[:, :2, 2])
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.floats(-50, 50), min_size=6, max_size=6))
+def test_planar_compose_and_between_are_se2_composition_and_its_inverse(v):
+    """``a ⊕ (a⁻¹ b) = b``, and both agree with the 3-D composition of the poses as
+    rotations about z."""
+    a = np.array([v[0], v[1], v[2] % 6.0 - 3.0])
+    b = np.array([v[3], v[4], v[5] % 6.0 - 3.0])
+    d = geo.planar_between(a, b)
+    back = geo.planar_compose(a, d)
+    np.testing.assert_allclose(back[:2], b[:2], atol=1e-9)
+    assert abs(float(geo.wrap_angle(back[2] - b[2]))) < 1e-12
+    Ra, Rd = geo.yaw_to_matrix(a[2]), geo.yaw_to_matrix(d[2])
+    R, t = geo.compose(Ra, np.array([a[0], a[1], 0.0]), Rd, np.array([d[0], d[1], 0.0]))
+    np.testing.assert_allclose(t[:2], b[:2], atol=1e-9)
+    assert abs(float(geo.wrap_angle(geo.matrix_to_yaw(R) - b[2]))) < 1e-12
+    stacked = geo.planar_between(np.stack([a, a]), np.stack([b, a]))
+    np.testing.assert_allclose(stacked, [d, [0.0, 0.0, 0.0]], atol=1e-12)

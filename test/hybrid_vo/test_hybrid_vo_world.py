@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 
+from h2o_slam.core.geometry import planar_between
 from hybrid_vo.errors import ConfigError
 from hybrid_vo.world import (
     STATUS_FIX,
@@ -18,7 +19,6 @@ from hybrid_vo.world import (
     World,
     WorldConfig,
     make_drive,
-    relative_pose,
     scenario,
     wrap_angle,
 )
@@ -108,7 +108,7 @@ def test_loop_closures_where_the_path_revisits_itself() -> None:
     drive = make_drive(scenario("loop", num_objects=0))
     assert len(drive.loop_closures) >= 2
     for lc in drive.loop_closures:
-        truth = relative_pose(drive.truth[lc.from_index], drive.truth[lc.to_index])
+        truth = planar_between(drive.truth[lc.from_index], drive.truth[lc.to_index])
         assert lc.to_index - lc.from_index >= 100
         assert np.hypot(truth[0], truth[1]) < 2.0
         np.testing.assert_allclose(lc.delta[:2], truth[:2], atol=0.3)

@@ -9,12 +9,11 @@ import numpy as np
 import pytest
 
 from h2o_slam.core.errors import InputError
+from h2o_slam.core.geometry import planar_between, planar_compose
 from h2o_slam.ros.mapper import (
     Mapper,
     MapperConfig,
     _adjoint_inverse,
-    compose,
-    relative,
 )
 
 NS = 1_000_000_000
@@ -27,8 +26,8 @@ def square_drive(laps: int = 2, side_m: float = 10.0, step_m: float = 0.25) -> n
     per_side = int(side_m / step_m)
     for _ in range(4 * laps):
         for _ in range(per_side):
-            poses.append(compose(poses[-1], np.array([step_m, 0.0, 0.0])))
-        poses.append(compose(poses[-1], np.array([0.0, 0.0, math.pi / 2])))
+            poses.append(planar_compose(poses[-1], np.array([step_m, 0.0, 0.0])))
+        poses.append(planar_compose(poses[-1], np.array([0.0, 0.0, math.pi / 2])))
     return np.array(poses)
 
 
@@ -36,9 +35,9 @@ def drifting_odometry(truth: np.ndarray, yaw_bias_per_step: float = 0.004) -> np
     """Odometry whose heading drifts by a constant bias per step."""
     odom = [truth[0].copy()]
     for a, b in zip(truth[:-1], truth[1:], strict=True):
-        d = relative(a, b)
+        d = planar_between(a, b)
         d[2] += yaw_bias_per_step
-        odom.append(compose(odom[-1], d))
+        odom.append(planar_compose(odom[-1], d))
     return np.array(odom)
 
 
@@ -90,7 +89,7 @@ def test_loop_closure_pulls_the_graph_together() -> None:
     first_lap = n // 2
     cov = np.diag([0.05**2, 0.05**2, 0.01**2])
     for end in (first_lap, n):
-        mapper.add_loop_closure(stamp(0), stamp(end), relative(truth[0], truth[end]), cov)
+        mapper.add_loop_closure(stamp(0), stamp(end), planar_between(truth[0], truth[end]), cov)
     for _ in range(100):
         mapper.step(0.02)
     assert drifted > 3.0
@@ -106,14 +105,14 @@ def test_false_loop_closure_is_gated_and_the_map_survives() -> None:
     cov = np.diag([0.05**2, 0.05**2, 0.01**2])
     n = len(truth) - 1
     # Claims the robot is back at the start facing the other way: 20 m and π off.
-    wrong = relative(truth[n], truth[0]) + np.array([0.0, 0.0, math.pi])
+    wrong = planar_between(truth[n], truth[0]) + np.array([0.0, 0.0, math.pi])
     with pytest.raises(InputError, match="gate"):
         mapper.add_loop_closure(stamp(0), stamp(n // 2 + 40), wrong, cov)
     assert mapper.rejected["loop_gated"] == 1
     np.testing.assert_array_equal(mapper.poses(), before)
     # A true closure between the same ends passes the same gate.
     n_half = n // 2
-    mapper.add_loop_closure(stamp(0), stamp(n_half), relative(truth[0], truth[n_half]), cov)
+    mapper.add_loop_closure(stamp(0), stamp(n_half), planar_between(truth[0], truth[n_half]), cov)
     assert mapper.accepted["loop_closure"] == 1
 
 
@@ -124,10 +123,10 @@ def test_path_covariance_matches_numerical_propagation() -> None:
     incs = rng.normal(0.0, [1.0, 0.3, 0.4], size=(5, 3))
     poses = [np.zeros(3)]
     for d in incs:
-        poses.append(compose(poses[-1], d))
+        poses.append(planar_compose(poses[-1], d))
     end = poses[-1]
     for i in range(1, 6):
-        t_ib = relative(poses[i], end)
+        t_ib = planar_between(poses[i], end)
         ad = _adjoint_inverse(t_ib[None, :])[0]
         jac = np.zeros((3, 3))
         for k in range(3):
@@ -135,9 +134,9 @@ def test_path_covariance_matches_numerical_propagation() -> None:
             h[k] = 1e-6
             bumped = [np.zeros(3)]
             for j, d in enumerate(incs, start=1):
-                d = compose(d, h) if j == i else d
-                bumped.append(compose(bumped[-1], d))
-            jac[:, k] = relative(end, bumped[-1]) / 1e-6
+                d = planar_compose(d, h) if j == i else d
+                bumped.append(planar_compose(bumped[-1], d))
+            jac[:, k] = planar_between(end, bumped[-1]) / 1e-6
         np.testing.assert_allclose(ad, jac, atol=1e-5)
 
 
@@ -149,9 +148,9 @@ def test_stamp_references_are_carried_onto_keyframes() -> None:
     i, j = 9, 150
     ka, _ = mapper.keyframes.nearest(stamp(i)[1])
     kb, _ = mapper.keyframes.nearest(stamp(j)[1])
-    edge = mapper.add_loop_closure(stamp(i), stamp(j), relative(truth[i], truth[j]),
+    edge = mapper.add_loop_closure(stamp(i), stamp(j), planar_between(truth[i], truth[j]),
                                    np.eye(3) * 1e-4)
-    want = relative(mapper.keyframes.odom[ka], mapper.keyframes.odom[kb])
+    want = planar_between(mapper.keyframes.odom[ka], mapper.keyframes.odom[kb])
     s = mapper.h2o.solver
     got = np.array([s.meas_t[edge][0], s.meas_t[edge][1], math.atan2(s.meas_R[edge][1, 0],
                                                                        s.meas_R[edge][0, 0])])
@@ -176,7 +175,7 @@ def test_gps_anchors_the_graph_in_enu() -> None:
     truth = square_drive(laps=1)
     # Odometry in a frame rotated and shifted from ENU, and drifting.
     offset = np.array([30.0, -12.0, 1.0])
-    odom = drifting_odometry(np.array([relative(offset, p) for p in truth]), 0.002)
+    odom = drifting_odometry(np.array([planar_between(offset, p) for p in truth]), 0.002)
     mapper = Mapper()
     # A clock that ticks per reading makes the budgeted steps do the same work on any
     # machine: on a busy CI runner fewer revisits fit and the end pose lands elsewhere.
@@ -217,7 +216,7 @@ def test_inputs_ahead_of_odometry_wait_for_it() -> None:
     feed(mapper, truth[:100])
     cov = np.eye(3) * 1e-4
     # Both arrive before the odometry of their stamps: held, not refused.
-    assert mapper.add_loop_closure(stamp(10), stamp(120), relative(truth[10], truth[120]),
+    assert mapper.add_loop_closure(stamp(10), stamp(120), planar_between(truth[10], truth[120]),
                                    cov) is None
     assert mapper.add_gps(START + 130 * NS // 10, np.array([*truth[130, :2], 0.0]),
                           np.eye(3)) is None
@@ -237,7 +236,7 @@ def test_save_load_continues_without_loss(tmp_path) -> None:
     mapper = Mapper(MapperConfig(loop_gate_chi2=math.inf))
     feed(mapper, odom[:half])
     mapper.add_loop_closure(0, mapper.num_nodes - 1,
-                            relative(truth[0], truth[half - 1]), np.eye(3) * 1e-3)
+                            planar_between(truth[0], truth[half - 1]), np.eye(3) * 1e-3)
     for _ in range(20):
         mapper.step(None)
     mapper.save(tmp_path / "map.g2o")
@@ -271,7 +270,8 @@ def test_exact_solve_reaches_the_least_squares_optimum() -> None:
     mapper = Mapper(MapperConfig(loop_gate_chi2=math.inf, budget_ms=None))
     feed(mapper, odom)
     n = len(truth) - 1
-    mapper.add_loop_closure(stamp(0), stamp(n), relative(truth[0], truth[n]), np.eye(3) * 1e-3)
+    mapper.add_loop_closure(stamp(0), stamp(n), planar_between(truth[0], truth[n]),
+                            np.eye(3) * 1e-3)
     before, after = mapper.exact_solve()
     assert after < 1e-3 * before
     # A second solve from the optimum does not move.
@@ -315,7 +315,7 @@ def test_latest_pose_applies_the_correction_it_is_given() -> None:
     same = mapper.latest_pose(mapper.map_to_odom())
     assert same is not None and same[0] == exact[0]
     np.testing.assert_allclose(same[1], exact[1])
-    shifted = mapper.latest_pose(compose(mapper.map_to_odom(), np.array([0.0, 0.0, 0.0]))
+    shifted = mapper.latest_pose(planar_compose(mapper.map_to_odom(), np.array([0.0, 0.0, 0.0]))
                                  + np.array([1.0, -2.0, 0.0]))
     assert shifted is not None
     np.testing.assert_allclose(shifted[1][:2], exact[1][:2] + [1.0, -2.0], atol=1e-12)
