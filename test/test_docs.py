@@ -4,6 +4,7 @@ against the files they name."""
 
 from __future__ import annotations
 
+import importlib
 import re
 import unicodedata
 from pathlib import Path
@@ -109,6 +110,36 @@ def test_links_name_files_and_headings_that_exist(page: Path) -> None:
         assert path.exists(), f"{page.name}: {target}"
         if anchor and path.suffix == ".md":
             assert anchor in anchors(path), f"{page.name}: {target}"
+
+
+def _resolves(dotted: str) -> bool:
+    """Whether ``a.b.c`` names a module, or an attribute path inside one."""
+    parts = dotted.split(".")
+    for k in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:k]))
+        except ImportError:
+            continue
+        try:
+            for name in parts[k:]:
+                obj = getattr(obj, name)
+        except AttributeError:
+            return False
+        return True
+    return False
+
+
+@pytest.mark.parametrize("page", [*PAGES, ROOT / "bench" / "README.md"], ids=lambda p: p.name)
+def test_module_names_in_the_docs_exist(page: Path) -> None:
+    """Every ``h2o_slam.…``, ``hybrid_vo.…`` and ``msg_adapters.…`` name a page mentions
+    is a module or something in one: the pages follow the code when it moves."""
+    names = set(re.findall(r"\b(?:h2o_slam|hybrid_vo|msg_adapters)(?:\.[A-Za-z_]\w*)+",
+                           page.read_text()))
+    files = ("yaml", "tum", "xml", "py", "rviz", "png", "json", "csv", "md", "g2o")
+    names = {n for n in names if n.rsplit(".", 1)[-1] not in files
+             and not n.startswith("h2o_slam.launch")}
+    missing = sorted(n for n in names if not _resolves(n))
+    assert not missing, f"{page.name} names what does not exist: {missing}"
 
 
 def test_the_front_page_shows_the_demos_plots_and_make_copies_them() -> None:
