@@ -26,6 +26,15 @@ from h2o_slam.core.graph import EdgeKind
 _RELATIVE = int(EdgeKind.RELATIVE)
 _POSITION = int(EdgeKind.POSITION)
 
+#: The tangent coordinates in use, as indices into ``(δt, δθ)``. Kernels of the per-node
+#: hot paths take them as a tuple: its length and entries are then known when numba
+#: compiles, which unrolls the ``p × p`` loops and drops the coordinates that do not mix
+#: (about twice as fast as an index array, which they accept too).
+Dof = tuple[int, ...] | np.ndarray
+
+#: All six coordinates (3-D).
+ALL_DOF = (0, 1, 2, 3, 4, 5)
+
 
 def endpoint_jacobians(
     kind: np.ndarray,
@@ -71,34 +80,48 @@ def endpoint_jacobians_one(
 ) -> tuple[Array, Array, Array]:
     """:func:`endpoint_jacobians` of a single edge: ``(e, J_a, J_b)`` with shapes ``(6,)``,
     ``(6, 6)``, ``(6, 6)``."""
+    # Written out in scalars: this runs once per edge update and per exact-mode edge, where
+    # a temporary per 3×3 product cost more than the arithmetic.
     e = np.zeros(6)
     Ja = np.zeros((6, 6))
     Jb = np.zeros((6, 6))
-    if kind == _RELATIVE:
-        d = xb - xa
-        RkRa = geo.mul3t(Rk, Ra.T.copy())
-        rot = geo.so3_log_one(geo.mul3(RkRa, Rb))
-        e[:3] = geo.mulv3(RkRa, d) - geo.mulv3t(Rk, tk)
-        e[3:] = rot
-        jr_rbT = geo.mul3(geo.so3_right_jacobian_inv_one(rot), Rb.T.copy())
-        # Rotating A about its origin swings B's offset as seen from A: d/dω of R_aᵀ d is
-        # R_aᵀ[d]×.
-        swing = geo.mul3(RkRa, geo.hat_one(d))
-        for i in range(3):
-            for j in range(3):
-                Jb[i, j] = RkRa[i, j]
-                Jb[3 + i, 3 + j] = jr_rbT[i, j]
-                Ja[i, j] = -RkRa[i, j]
-                Ja[i, 3 + j] = swing[i, j]
-                Ja[3 + i, 3 + j] = -jr_rbT[i, j]
-    elif kind == _POSITION:
+    if kind == _POSITION:
         for i in range(3):
             e[i] = xb[i] - tk[i]
             Jb[i, i] = 1.0
+        return e, Ja, Jb
+    E = np.empty((3, 3))  # the error's rotation
+    if kind == _RELATIVE:
+        d0, d1, d2 = xb[0] - xa[0], xb[1] - xa[1], xb[2] - xa[2]
+        for i in range(3):  # R_Kᵀ R_aᵀ, which is also J_b's translation block
+            for j in range(3):
+                Jb[i, j] = Rk[0, i] * Ra[j, 0] + Rk[1, i] * Ra[j, 1] + Rk[2, i] * Ra[j, 2]
+        for i in range(3):
+            for j in range(3):
+                E[i, j] = Jb[i, 0] * Rb[0, j] + Jb[i, 1] * Rb[1, j] + Jb[i, 2] * Rb[2, j]
+            e[i] = (Jb[i, 0] * d0 + Jb[i, 1] * d1 + Jb[i, 2] * d2
+                    - (Rk[0, i] * tk[0] + Rk[1, i] * tk[1] + Rk[2, i] * tk[2]))
+            # Rotating A about its origin swings B's offset as seen from A: d/dω of R_aᵀ d
+            # is R_aᵀ[d]×, row by row a cross product with d.
+            m0, m1, m2 = Jb[i, 0], Jb[i, 1], Jb[i, 2]
+            Ja[i, 3] = m1 * d2 - m2 * d1
+            Ja[i, 4] = m2 * d0 - m0 * d2
+            Ja[i, 5] = m0 * d1 - m1 * d0
+            for j in range(3):
+                Ja[i, j] = -Jb[i, j]
     else:
-        rot = geo.so3_log_one(geo.mul3t(Rk, Rb))
-        e[3:] = rot
-        Jb[3:, 3:] = geo.mul3(geo.so3_right_jacobian_inv_one(rot), Rb.T.copy())
+        for i in range(3):
+            for j in range(3):
+                E[i, j] = Rk[0, i] * Rb[0, j] + Rk[1, i] * Rb[1, j] + Rk[2, i] * Rb[2, j]
+    rot = geo.so3_log_one(E)
+    jr = geo.so3_right_jacobian_inv_one(rot)
+    for i in range(3):
+        e[3 + i] = rot[i]
+        for j in range(3):  # J_r⁻¹(rot) R_bᵀ
+            v = jr[i, 0] * Rb[j, 0] + jr[i, 1] * Rb[j, 1] + jr[i, 2] * Rb[j, 2]
+            Jb[3 + i, 3 + j] = v
+            if kind == _RELATIVE:
+                Ja[3 + i, 3 + j] = -v
     return e, Ja, Jb
 
 
@@ -162,21 +185,54 @@ def chain_jacobian_one(R_parent: Array, R_node: Array, x_node: Array, x_end: Arr
 
 
 @kernel
-def dof_product_into(Je: Array, M: Array, dof: np.ndarray, out: Array) -> None:
-    """``out = (Je M)[dof, dof]``: a node's raw Jacobian block in the coordinates in use."""
+def chain_block_into(
+    A: Array, R_parent: Array, R_node: Array, v: Array, dof: Dof, out: Array
+) -> None:
+    """``out = (A M)[:, dof]`` for ``M`` the chain block of :func:`chain_jacobian_into`,
+    without forming ``M``: the edge Jacobian block of one path node.
+
+    Args:
+        A: the endpoint Jacobian, whitened and restricted to the rows in use, ``(m, 6)``.
+        R_parent, R_node: global rotations of the node's parent and of the node.
+        v: ``x_end − x_node``, the end's offset from the node, ``(3,)``.
+        dof: the tangent coordinates in use (``p`` of them).
+        out: ``(m, p)``.
+
+    A translation column ``c`` is ``A_t R_parent[:, c]``; a rotation column ``j`` is
+    ``A_t (R_node[:, j] × v) + A_r R_node[:, j] = R_node[:, j] · (A_r + v × A_t)`` (row by
+    row), so a row costs one cross product and ``p`` dot products of three.
+    """
+    for a in range(A.shape[0]):
+        at0, at1, at2 = A[a, 0], A[a, 1], A[a, 2]
+        g0 = A[a, 3] + v[1] * at2 - v[2] * at1
+        g1 = A[a, 4] + v[2] * at0 - v[0] * at2
+        g2 = A[a, 5] + v[0] * at1 - v[1] * at0
+        for q in range(len(dof)):
+            c = dof[q]
+            if c < 3:
+                out[a, q] = at0 * R_parent[0, c] + at1 * R_parent[1, c] + at2 * R_parent[2, c]
+            else:
+                c -= 3
+                out[a, q] = R_node[0, c] * g0 + R_node[1, c] * g1 + R_node[2, c] * g2
+
+
+@kernel
+def whitened_rows_into(W: Array, Je: Array, dof: Dof, out: Array) -> None:
+    """``out = W Je[dof, :]`` (``(p, 6)``): an endpoint Jacobian whitened, in the
+    coordinates in use."""
     p = len(dof)
     for a in range(p):
-        for b in range(p):
+        for k in range(6):
             acc = 0.0
-            for k in range(6):
-                acc += Je[dof[a], k] * M[k, dof[b]]
-            out[a, b] = acc
+            for q in range(p):
+                acc += W[a, q] * Je[dof[q], k]
+            out[a, k] = acc
 
 
 @kernel
 def path_linearization(
     tree_R: Array, tree_t: Array, a_chain: np.ndarray, b_chain: np.ndarray, kind: int,
-    Rk: Array, tk: Array, W: Array, dof: np.ndarray,
+    Rk: Array, tk: Array, W: Array, dof: Dof,
 ) -> tuple[Array, Array]:
     """Whitened Jacobian blocks and residual of one edge over its tree path.
 
@@ -194,15 +250,15 @@ def path_linearization(
     lb = len(b_chain)
     p = len(dof)
     # Poses in the root's frame: R_all[i], x_all[i] of node i, R_all[i - 1] its parent's.
-    R_all = np.empty((la + lb + 2, 3, 3))
+    R_all = np.empty((la + lb, 3, 3))
     x_all = np.empty((la + lb, 3))
     ends_R = np.empty((2, 3, 3))
     ends_x = np.zeros((2, 3))
+    eye = np.eye(3)
     for c in range(2):
         chain = a_chain if c == 0 else b_chain
         off = 0 if c == 0 else la
-        R = ends_R[c]
-        R[:] = np.eye(3)
+        R = eye
         x = ends_x[c]
         for i in range(len(chain)):
             n = chain[i]
@@ -212,21 +268,18 @@ def path_linearization(
             R = R_all[off + i]
         ends_R[c] = R
     e, Ja, Jb = endpoint_jacobians_one(kind, ends_R[0], ends_x[0], ends_R[1], ends_x[1], Rk, tk)
+    # The whitening folded into each end's Jacobian once, not into every block.
+    A = np.empty((2, p, 6))
+    whitened_rows_into(W, Ja, dof, A[0])
+    whitened_rows_into(W, Jb, dof, A[1])
     J = np.empty((la + lb, p, p))
-    raw = np.empty((p, p))
-    M = np.zeros((6, 6))
-    eye = np.eye(3)
+    v = np.empty(3)
     for i in range(la + lb):
         end = 0 if i < la else 1
+        for k in range(3):
+            v[k] = ends_x[end, k] - x_all[i, k]
         R_par = eye if i == 0 or i == la else R_all[i - 1]
-        chain_jacobian_into(R_par, R_all[i], x_all[i], ends_x[end], M)
-        dof_product_into(Ja if end == 0 else Jb, M, dof, raw)
-        for a in range(p):
-            for b in range(p):
-                acc = 0.0
-                for k in range(p):
-                    acc += W[a, k] * raw[k, b]
-                J[i, a, b] = acc
+        chain_block_into(A[end], R_par, R_all[i], v, dof, J[i])
     r = np.empty(p)
     for a in range(p):
         r[a] = e[dof[a]]

@@ -106,6 +106,7 @@ class H2OSolver:
         self.config = config or SolverConfig()
         self.planar = planar
         self.dof = geo.PLANAR_DOF if planar else np.arange(6)
+        self._dof = tuple(int(q) for q in self.dof)  # for the kernels (jacobians.Dof)
         self.p = len(self.dof)
         self.tree = PoseTree()
         self.B = np.zeros((16, self.p, self.p))
@@ -117,6 +118,11 @@ class H2OSolver:
         self.tree_edge_forward = np.ones(16, dtype=bool)
         self._paths: list[EdgePath | None] = []
         self._contrib: list[tuple[np.ndarray, Array] | None] = []
+        #: Per edge: the node its contribution to ``B`` covers when that is a single node
+        #: (-1 otherwise), and that block: ``J_αᵀJ_α`` of eq. 3.36, read by the interpolated
+        #: update for the kept nodes' tree edges α without a Python loop over ``_contrib``.
+        self._own_node = np.full(64, -1, dtype=np.int64)
+        self._own_block = np.zeros((64, self.p, self.p))
         self._gps_at: dict[int, list[int]] = {}
         self._incident: dict[int, list[int]] = {}
         #: χ² of the edge most recently added, at the moment it was added.
@@ -212,9 +218,7 @@ class H2OSolver:
             self.last_chi2 = math.nan
             return edge
         lin = self.linearize(edge)
-        contrib = _gram(lin.J)
-        self.B[lin.domain] += contrib
-        self._contrib[edge] = (lin.domain, contrib)
+        self._contribute(edge, lin)
         self.last_chi2 = float(lin.r @ lin.r)
         return edge
 
@@ -227,6 +231,7 @@ class H2OSolver:
             self._incident.setdefault(int(a), []).append(edge)
         self._paths.append(None)
         self._contrib.append(None)
+        self._grow_own()
         if kind != EdgeKind.RELATIVE:
             self._gps_at.setdefault(int(b), []).append(edge)
         return edge
@@ -249,6 +254,29 @@ class H2OSolver:
                 gps_at.setdefault(b, []).append(e)
         self._paths.extend([None] * graph.num_edges)
         self._contrib.extend([None] * graph.num_edges)
+        self._grow_own()
+
+    def _grow_own(self) -> None:
+        size = len(self._own_node)
+        if self.num_edges > size:
+            extra = max(self.num_edges, 2 * size) - size
+            self._own_node = np.concatenate([self._own_node, np.full(extra, -1)])
+            self._own_block = np.concatenate(
+                [self._own_block, np.zeros((extra, self.p, self.p))])
+
+    def _contribute(self, edge: int, lin: Linearization) -> None:
+        """Add the edge's contribution ``𝔅(JᵀJ)`` at ``lin`` to ``B`` and remember it."""
+        contrib = _gram(lin.J)
+        self.B[lin.domain] += contrib
+        self._remember(edge, lin.domain, contrib)
+
+    def _remember(self, edge: int, nodes: np.ndarray, blocks: Array) -> None:
+        """Record that ``edge`` contributes ``blocks`` to ``B`` at ``nodes``."""
+        self._contrib[edge] = (nodes, blocks)
+        single = len(nodes) == 1
+        self._own_node[edge] = nodes[0] if single else -1
+        if single:
+            self._own_block[edge] = blocks[0]
 
     def _grow_B(self) -> None:
         if self.tree.n > len(self.B):
@@ -281,10 +309,7 @@ class H2OSolver:
         solver.tree_edge, solver.tree_edge_forward = tree_edges(graph, parents)
         solver._extend_edges(graph)
         for e in range(graph.num_edges if regularizer else 0):
-            lin = solver.linearize(e)
-            contrib = _gram(lin.J)
-            solver.B[lin.domain] += contrib
-            solver._contrib[e] = (lin.domain, contrib)
+            solver._contribute(e, solver.linearize(e))
         return solver
 
     # -- queries ------------------------------------------------------------------------------
@@ -322,7 +347,7 @@ class H2OSolver:
         table = self._edges
         J, r = path_linearization(
             self.tree.R, self.tree.t, path.a_chain, path.b_chain, int(table.kind[edge]),
-            table.meas_R[edge], table.meas_t[edge], table.W[edge], self.dof)
+            table.meas_R[edge], table.meas_t[edge], table.W[edge], self._dof)
         return Linearization(path.domain, J, r, len(path.a_chain))
 
     # -- updates ------------------------------------------------------------------------------
@@ -362,7 +387,7 @@ class H2OSolver:
             assert saved is not None
             self.tree.R[dom], self.tree.t[dom] = saved
         # J was taken at the state kept in either case, so it is the edge's contribution.
-        self._contrib[edge] = (dom, _store_contribution(self.B, dom, B_c, lin.J))
+        self._remember(edge, dom, _store_contribution(self.B, dom, B_c, lin.J))
         return RelaxOutcome(accepted, before, after, len(dom), solved)
 
     def _energy_after(
@@ -430,30 +455,18 @@ class H2OSolver:
         kept, start = sel.kept[merged], sel.start[merged]
         table = self._edges
         k_R, k_t, S, top = interpolate.tree_edge_constraints(
-            dom, self.tree_edge, self.tree_edge_forward, table.meas_R, table.meas_t, table.info)
-        R_b, t_b, S_b = interpolate._merge_segments(kept, start, k_R, k_t, S)
+            dom, self.tree_edge, self.tree_edge_forward, table.meas_R, table.meas_t, table.info,
+            self._dof)
+        R_b, t_b, S_b = interpolate._merge_segments(kept, start, k_R, k_t, S, self._dof)
         adjust = interpolate.merged_stiffness(
-            self.tree.R, self.tree.t, dom, kept, start, R_b, t_b, S_b, self.dof)
-        tops_before = np.concatenate([[0], np.cumsum(top)])
-        has_top = tops_before[kept + 1] > tops_before[start]
-        # α, the kept node's own tree edge, gives way to β where its contribution to B is
-        # that node's alone (its path is the tree edge); otherwise the segment keeps B.
-        contrib = self._contrib
-        nodes = dom[kept]
-        alphas = [contrib[e] if e >= 0 else None for e in self.tree_edge[nodes].tolist()]
-        own = [a is not None and len(a[0]) == 1 and a[0][0] == n
-               for a, n in zip(alphas, nodes.tolist(), strict=True)]
-        use = np.array(own, dtype=bool) & ~has_top
-        adjust[~use] = 0.0
-        if np.any(use):
-            adjust[use] -= np.stack([a[1][0] for a, u in zip(alphas, use, strict=True)
-                                     if u and a is not None])
+            self.tree.R, self.tree.t, dom, kept, start, R_b, t_b, S_b, self._dof)
+        interpolate.give_way(adjust, dom, kept, start, top, self.tree_edge, self._own_node,
+                             self._own_block)
         return adjust
 
     def _compliance(self, B: Array) -> Array:
         """Distribution weights ``1 / diag(B)`` over the rotational coordinates (TORO)."""
-        rot = np.einsum("dii->di", B)[:, self.p // 2:].sum(axis=1) if self.p == 6 else B[:, 2, 2]
-        return 1.0 / (rot + 1e-9 * max(float(rot.max(initial=0.0)), 1e-12))
+        return interpolate.compliance(np.ascontiguousarray(B))
 
     def relax_batch(self, edges: list[int] | np.ndarray) -> None:
         """Batch update of a set of edges (thesis 3.3.7, eq. 3.40–3.42).
@@ -479,9 +492,7 @@ class H2OSolver:
         self._apply(nodes, x, self._step_scale(x))
         self.B[nodes] = B_c
         for e, lin in zip(edges, lins, strict=True):
-            contrib = _gram(lin.J)
-            np.add.at(self.B, lin.domain, contrib)
-            self._contrib[e] = (lin.domain, contrib)
+            self._contribute(e, lin)
 
     def _stack(self, lins: list[Linearization], nodes: np.ndarray) -> tuple[sp.csr_matrix, Array]:
         p = self.p
@@ -589,10 +600,7 @@ class H2OSolver:
             old = self._contrib[e]
             if old is not None:
                 self.B[old[0]] -= old[1]
-            lin = self.linearize(e)
-            contrib = _gram(lin.J)
-            self.B[lin.domain] += contrib
-            self._contrib[e] = (lin.domain, contrib)
+            self._contribute(e, self.linearize(e))
 
     def upstream_gps(self, node: int, count: int) -> list[int]:
         """``GetUpstreamGPSes``: the first ``count`` GPS edges found walking up from ``node``."""
@@ -607,10 +615,16 @@ class H2OSolver:
 @kernel
 def _gram(J: Array) -> Array:
     """Diagonal blocks ``Jᵢᵀ Jᵢ`` of ``JᵀJ``, ``(d, p, p)`` from ``(d, m, p)``."""
-    out = np.empty((J.shape[0], J.shape[2], J.shape[2]))
-    for i in range(J.shape[0]):
-        Ji = np.ascontiguousarray(J[i])
-        out[i] = Ji.T @ Ji
+    d, m, p = J.shape
+    out = np.empty((d, p, p))
+    for i in range(d):  # loops: a BLAS call per tiny block costs more than the block
+        for a in range(p):
+            for b in range(a, p):
+                acc = 0.0
+                for k in range(m):
+                    acc += J[i, k, a] * J[i, k, b]
+                out[i, a, b] = acc
+                out[i, b, a] = acc
     return out
 
 
@@ -618,8 +632,11 @@ def _gram(J: Array) -> Array:
 def _store_contribution(B: Array, nodes: np.ndarray, B_c: Array, J: Array) -> Array:
     """``B[nodes] = B_c + 𝔅(JᵀJ)``; returns the new contribution ``𝔅(JᵀJ)``."""
     contrib = _gram(J)
+    p = J.shape[2]
     for i in range(len(nodes)):
-        B[nodes[i]] = B_c[i] + contrib[i]
+        for a in range(p):
+            for b in range(p):
+                B[nodes[i], a, b] = B_c[i, a, b] + contrib[i, a, b]
     return contrib
 
 
