@@ -27,7 +27,13 @@ import numpy as np
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.compiled import kernel
 from h2o_slam.core.geometry import Array
-from h2o_slam.core.jacobians import ALL_DOF, Dof, chain_block_into, endpoint_jacobians_one
+from h2o_slam.core.jacobians import (
+    ALL_DOF,
+    Dof,
+    chain_block_into,
+    compose_into,
+    endpoint_jacobians_one,
+)
 
 
 @dataclass(frozen=True)
@@ -56,27 +62,35 @@ def select(len_a: int, len_b: int, d_max: int) -> Selection:
     Nodes are shared between the chains in proportion to their lengths; each chain keeps its
     endpoint, where the edge acts.
     """
+    return Selection(*_select(len_a, len_b, d_max))
+
+
+@kernel
+def _select(len_a: int, len_b: int, d_max: int) -> tuple[np.ndarray, np.ndarray]:
+    # Compiled: in numpy the few small arrays cost 16 µs a call.
     total = len_a + len_b
     if total <= d_max:
         kept = np.arange(total)
-        return Selection(kept, kept.copy())
+        return kept, kept.copy()
     if len_a and len_b:
         k_a = min(len_a, max(1, min(d_max - 1, round(d_max * len_a / total))))
         k_b = min(len_b, max(1, d_max - k_a))
     else:
         k_a, k_b = min(len_a, d_max), min(len_b, d_max)
-    kept_a, start_a = _even(len_a, k_a, 0)
-    kept_b, start_b = _even(len_b, k_b, len_a)
-    return Selection(np.concatenate([kept_a, kept_b]), np.concatenate([start_a, start_b]))
+    kept = np.empty(k_a + k_b, dtype=np.int64)
+    start = np.empty(k_a + k_b, dtype=np.int64)
+    _even_into(len_a, 0, kept[:k_a], start[:k_a])
+    _even_into(len_b, len_a, kept[k_a:], start[k_a:])
+    return kept, start
 
 
-def _even(length: int, k: int, offset: int) -> tuple[np.ndarray, np.ndarray]:
-    if k == 0:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+@kernel
+def _even_into(length: int, offset: int, kept: np.ndarray, start: np.ndarray) -> None:
     # Count back from the endpoint in equal strides; the top segment takes the remainder.
-    kept = (length - 1 - (np.arange(k)[::-1] * length) // k).astype(np.int64)
-    start = np.concatenate([[0], kept[:-1] + 1])
-    return kept + offset, start + offset
+    k = len(kept)
+    for j in range(k):
+        kept[j] = offset + length - 1 - ((k - 1 - j) * length) // k
+        start[j] = offset if j == 0 else kept[j - 1] + 1
 
 
 def merge_segments(
@@ -108,27 +122,53 @@ def add_rotated_stiffness(S: Array, Q: Array, dof: Dof, out: Array, work: Array)
     """``out += Rᵀ S R`` with ``R = diag(Q, Q)``: a stiffness whose error is turned by the
     rotation ``Q`` (translation and rotation blocks alike), in the coordinates ``dof``.
 
-    ``S``, ``out`` and the scratch ``work`` are ``(p, p)``. Restricting to ``dof`` before
-    turning is exact when ``Q`` maps the coordinates in use onto themselves: any rotation
-    for all six, rotations about z for the planar ``(x, y, yaw)``. ``R`` is block diagonal:
-    each entry sums over one block's coordinates only, which a tuple ``dof`` lets the
-    compiler resolve (216 products for all six, 30 planar).
+    ``S`` and ``out`` are ``(p, p)``, ``work`` a ``(2, p, p)`` scratch. Restricting to ``dof``
+    before turning is exact when ``Q`` maps the coordinates in use onto themselves: any
+    rotation for all six, rotations about z for the planar ``(x, y, yaw)``.
     """
     p = len(dof)
+    if p == 6:  # all six: Qᵀ S_ab Q for each 3×3 block (216 products, not 432)
+        for a in range(2):
+            for b in range(2):
+                for i in range(3):
+                    for j in range(3):
+                        work[0, i, j] = (S[3 * a + i, 3 * b] * Q[0, j]
+                                         + S[3 * a + i, 3 * b + 1] * Q[1, j]
+                                         + S[3 * a + i, 3 * b + 2] * Q[2, j])
+                for i in range(3):
+                    for j in range(3):
+                        out[3 * a + i, 3 * b + j] += (Q[0, i] * work[0, 0, j]
+                                                      + Q[1, i] * work[0, 1, j]
+                                                      + Q[2, i] * work[0, 2, j])
+        return
+    # A subset: R restricted to it (zero across the blocks), then Rᵀ (S R) densely.
+    for c in range(p):
+        for b in range(p):
+            same = (dof[c] < 3) == (dof[b] < 3)
+            work[1, c, b] = Q[dof[c] % 3, dof[b] % 3] if same else 0.0
     for c in range(p):
         for b in range(p):
             acc = 0.0
             for e in range(p):
-                if (dof[e] < 3) == (dof[b] < 3):
-                    acc += S[c, e] * Q[dof[e] % 3, dof[b] % 3]
-            work[c, b] = acc
+                acc += S[c, e] * work[1, e, b]
+            work[0, c, b] = acc
     for a in range(p):
         for b in range(p):
             acc = 0.0
             for c in range(p):
-                if (dof[c] < 3) == (dof[a] < 3):
-                    acc += Q[dof[c] % 3, dof[a] % 3] * work[c, b]
+                acc += work[1, c, a] * work[0, c, b]
             out[a, b] += acc
+
+
+@kernel
+def restrict_into(M: Array, dof: Dof, out: Array) -> None:
+    """``out = M[dof][:, dof]`` for a 6×6 ``M``."""
+    if len(dof) == 6:  # (a tuple index that the compiler cannot unroll is slow)
+        out[:] = M
+        return
+    for a in range(len(dof)):
+        for b in range(len(dof)):
+            out[a, b] = M[dof[a], dof[b]]
 
 
 @kernel
@@ -138,28 +178,30 @@ def _merge_segments(
     k = len(kept)
     p = len(dof)
     R_beta = np.empty((k, 3, 3))
-    t_beta = np.zeros((k, 3))
+    t_beta = np.empty((k, 3))
     S_beta = np.empty((k, p, p))
-    R_acc = np.empty((3, 3))
-    R_next = np.empty((3, 3))
+    positions = np.arange(len(k_R))
+    longest = int((kept - start).max()) + 1 if k else 1
+    P_R = np.empty((longest + 1, 3, 3))
+    P_t = np.empty((longest + 1, 3))
+    P_R[0] = np.eye(3)
+    P_t[0] = 0.0
     S_acc = np.empty((p, p))
     S_next = np.empty((p, p))
-    work = np.empty((p, p))
+    work = np.empty((2, p, p))
     for j in range(k):
-        R_acc[:] = np.eye(3)
-        S_acc[:] = 0.0
-        for pos in range(start[j], kept[j] + 1):
-            # k_β grows by the node's transform on the right; the stiffness gathered so far
-            # is turned into the node's frame (Horner's rule for eq. 3.38), then its own
-            # is added.
-            geo.add_mulv3(R_acc, k_t[pos], t_beta[j])
-            geo.mul3_into(R_acc, k_R[pos], R_next)
+        # k_β: the product of the segment's transforms.
+        length = kept[j] - start[j] + 1
+        compose_into(k_R, k_t, positions[start[j]:kept[j] + 1], P_R, P_t)
+        R_beta[j] = P_R[length]
+        t_beta[j] = P_t[length]
+        # S_β by Horner's rule: the stiffness gathered so far is turned into the next node's
+        # frame, then that node's own is added.
+        S_acc[:] = S[start[j]]
+        for pos in range(start[j] + 1, kept[j] + 1):
             S_next[:] = S[pos]
-            if pos > start[j]:
-                add_rotated_stiffness(S_acc, k_R[pos], dof, S_next, work)
-            R_acc, R_next = R_next, R_acc
+            add_rotated_stiffness(S_acc, k_R[pos], dof, S_next, work)
             S_acc, S_next = S_next, S_acc
-        R_beta[j] = R_acc
         S_beta[j] = S_acc
     return R_beta, t_beta, S_beta
 
@@ -193,7 +235,7 @@ def _tree_edge_constraints(
     S = np.zeros((d, p, p))
     top = np.zeros(d, dtype=np.bool_)
     S_e = np.empty((p, p))
-    work = np.empty((p, p))
+    work = np.empty((2, p, p))
     for i in range(d):
         e = tree_edge[domain[i]]
         if e < 0:
@@ -207,18 +249,14 @@ def _tree_edge_constraints(
                 k_t[i, a] = meas_t[e, a]
                 for b in range(3):
                     k_R[i, a, b] = meas_R[e, a, b]
-            for a in range(p):
-                for b in range(p):
-                    S[i, a, b] = info[e, dof[a], dof[b]]
+            restrict_into(info[e], dof, S[i])
         else:
             for a in range(3):
                 k_t[i, a] = 0.0
                 for b in range(3):
                     k_R[i, a, b] = meas_R[e, b, a]
                     k_t[i, a] -= meas_R[e, b, a] * meas_t[e, b]
-            for a in range(p):
-                for b in range(p):
-                    S_e[a, b] = info[e, dof[a], dof[b]]
+            restrict_into(info[e], dof, S_e)
             add_rotated_stiffness(S_e, meas_R[e], dof, S[i], work)
     return k_R, k_t, S, top
 
@@ -255,18 +293,17 @@ def merged_stiffness(
     A = np.empty((p, 6))
     at_node = np.zeros(3)  # the kept node is β's end: no lever arm
     eye = np.eye(3)
-    prefix = np.empty((3, 3, 3))  # three buffers: the parent's, the node's, the next
+    longest = int((kept - start).max()) + 1 if k else 1
+    H_R = np.empty((longest + 1, 3, 3))
+    H_x = np.empty((longest + 1, 3))
+    H_R[0] = eye
+    H_x[0] = 0.0
     for j in range(k):
-        prefix[0] = eye
-        x = np.zeros(3)
-        cur = 0
-        for pos in range(start[j], kept[j] + 1):
-            n = domain[pos]
-            geo.add_mulv3(prefix[cur], tree_t[n], x)
-            geo.mul3_into(prefix[cur], tree_R[n], prefix[(cur + 1) % 3])
-            cur = (cur + 1) % 3
-        R = prefix[cur]
-        R_par = prefix[(cur + 2) % 3]
+        length = kept[j] - start[j] + 1
+        compose_into(tree_R, tree_t, domain[start[j]:kept[j] + 1], H_R, H_x)
+        R = H_R[length]
+        R_par = H_R[length - 1]
+        x = H_x[length]
         _, _, Jb = endpoint_jacobians_one(0, eye, at_node, R, x, R_beta[j], t_beta[j])
         for a in range(p):
             for c in range(6):
@@ -367,82 +404,74 @@ def distribute_into(
     nodes in between take a share of the rotation and translation in proportion to their
     cumulative compliance, keeping the path continuous.
     """
+    # Per node: one exponential and a few 3×3 products, written on scalars (a view of a
+    # row per helper call would cost as much as the arithmetic).
     longest = int((kept - start).max()) + 1 if len(kept) else 1
-    H_R = np.empty((longest, 3, 3))
-    H_x = np.empty((longest, 3))
+    H_R = np.empty((longest + 1, 3, 3))  # H_R[i + 1]: node i's rotation in the segment frame
+    H_x = np.empty((longest + 1, 3))
+    R_new = np.empty((longest + 1, 3, 3))  # the same after the turn
     frac = np.empty(longest)
-    R_new = np.empty((longest, 3, 3))
-    eye = np.eye(3)
     E = np.empty((3, 3))
     tmp = np.empty((3, 3))
-    target_R = np.empty((3, 3))
-    target_x = np.empty(3)
-    moved = np.empty(3)
     w = np.empty(3)
-    omega = np.empty(3)
-    x_rot = np.empty(3)
+    target_x = np.empty(3)
+    miss = np.empty(3)
+    H_R[0] = np.eye(3)
+    H_x[0] = 0.0
+    R_new[0] = np.eye(3)
     for j in range(len(kept)):
         s0 = start[j]
         length = kept[j] - s0 + 1
         # The segment's poses in the frame of its parent.
-        R = eye
+        compose_into(tree_R, tree_t, domain[s0:s0 + length], H_R, H_x)
         total = 0.0
         for i in range(length):
-            n = domain[s0 + i]
-            for a in range(3):
-                H_x[i, a] = H_x[i - 1, a] if i else 0.0
-            geo.add_mulv3(R, tree_t[n], H_x[i])
-            geo.mul3_into(R, tree_R[n], H_R[i])
-            R = H_R[i]
             total += compliance[s0 + i]
         # Target of the kept node in that frame: its parent's pose times its local transform
         # with the step applied.
         last = domain[kept[j]]
-        par_R = H_R[length - 2] if length > 1 else eye
         for a in range(3):
-            target_x[a] = H_x[length - 2, a] if length > 1 else 0.0
-            moved[a] = tree_t[last, a] + step[j, a]
+            target_x[a] = H_x[length - 1, a]
+            for b in range(3):
+                target_x[a] += H_R[length - 1, a, b] * (tree_t[last, b] + step[j, b])
             w[a] = step[j, 3 + a]
-        geo.add_mulv3(par_R, moved, target_x)
         geo.so3_exp_into(w, E)
         geo.mul3_into(tree_R[last], E, tmp)
-        geo.mul3_into(par_R, tmp, target_R)
+        geo.mul3_into(H_R[length - 1], tmp, E)  # the target rotation
         # ω: the turn that takes the segment's end from its rotation to the target's.
-        for a in range(3):
-            for b in range(3):
-                tmp[a, b] = (target_R[a, 0] * H_R[length - 1, b, 0]
-                             + target_R[a, 1] * H_R[length - 1, b, 1]
-                             + target_R[a, 2] * H_R[length - 1, b, 2])
-        omega[:] = geo.so3_log_one(tmp)
-        # Turn the segment: node i's pose rotates by its share of ω about the segment's
-        # parent, R'ᵢ = Exp(fᵢ ω) Hᵢ; positions follow with the old local translations,
-        # x'ᵢ = x'ᵢ₋₁ + R'ᵢ₋₁ tᵢ.
+        geo.mul3_into(E, H_R[length].T, tmp)
+        omega = geo.so3_log_one(tmp)
+        # Turn the segment: node i's pose rotates by its share fᵢ of ω about the segment's
+        # parent, R'ᵢ = Exp(fᵢ ω) Hᵢ, so its local rotation becomes R'ᵢ₋₁ᵀ R'ᵢ; positions
+        # follow with the old local translations, x'ᵢ = x'ᵢ₋₁ + R'ᵢ₋₁ tᵢ.
         cum = 0.0
-        x_rot[:] = 0.0
-        prev = eye
+        miss[:] = target_x
         for i in range(length):
+            n = domain[s0 + i]
             cum += compliance[s0 + i]
             frac[i] = cum / total
             for a in range(3):
                 w[a] = frac[i] * omega[a]
             geo.so3_exp_into(w, E)
-            geo.mul3_into(E, H_R[i], R_new[i])
-            geo.add_mulv3(prev, tree_t[domain[s0 + i]], x_rot)
-            prev = R_new[i]
+            for a in range(3):
+                miss[a] -= (R_new[i, a, 0] * tree_t[n, 0] + R_new[i, a, 1] * tree_t[n, 1]
+                            + R_new[i, a, 2] * tree_t[n, 2])
+                for b in range(3):
+                    R_new[i + 1, a, b] = (E[a, 0] * H_R[i + 1, 0, b] + E[a, 1] * H_R[i + 1, 1, b]
+                                          + E[a, 2] * H_R[i + 1, 2, b])
+            for a in range(3):
+                for b in range(3):
+                    tmp[a, b] = (R_new[i, 0, a] * R_new[i + 1, 0, b]
+                                 + R_new[i, 1, a] * R_new[i + 1, 1, b]
+                                 + R_new[i, 2, a] * R_new[i + 1, 2, b])
+            geo.renormalize_into(tmp, tree_R[n])
         # Then shift it: node i's position moves by its share fᵢ of the kept node's miss,
-        # which in its parent's turned frame is tᵢ + (fᵢ − fᵢ₋₁) R'ᵢ₋₁ᵀ miss; its local
-        # rotation is R'ᵢ₋₁ᵀ R'ᵢ.
-        for a in range(3):
-            moved[a] = target_x[a] - x_rot[a]
-        prev = eye
+        # which in its parent's turned frame is tᵢ + (fᵢ − fᵢ₋₁) R'ᵢ₋₁ᵀ miss.
         prev_frac = 0.0
         for i in range(length):
             n = domain[s0 + i]
             share = frac[i] - prev_frac
             prev_frac = frac[i]
             for a in range(3):
-                tree_t[n, a] += share * (prev[0, a] * moved[0] + prev[1, a] * moved[1]
-                                         + prev[2, a] * moved[2])
-            geo.mul3t_into(prev, R_new[i], tmp)
-            geo.renormalize_into(tmp, tree_R[n])
-            prev = R_new[i]
+                tree_t[n, a] += share * (R_new[i, 0, a] * miss[0] + R_new[i, 1, a] * miss[1]
+                                         + R_new[i, 2, a] * miss[2])

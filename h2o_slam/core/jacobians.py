@@ -185,6 +185,23 @@ def chain_jacobian_one(R_parent: Array, R_node: Array, x_node: Array, x_end: Arr
 
 
 @kernel
+def compose_into(R: Array, t: Array, nodes: np.ndarray, H_R: Array, H_x: Array) -> None:
+    """Poses down a chain: ``(H_R, H_x)[i + 1] = (H_R, H_x)[i] · (R, t)[nodes[i]]``.
+
+    ``H_R[0], H_x[0]`` (set by the caller) is the frame the chain hangs from; ``R, t`` are
+    local transforms, ``(N, 3, 3)`` and ``(N, 3)``; ``H_R, H_x`` hold ``len(nodes) + 1``.
+    """
+    for i in range(len(nodes)):
+        n = nodes[i]
+        for a in range(3):  # on scalars: a view of a row per node costs as much
+            H_x[i + 1, a] = H_x[i, a] + (H_R[i, a, 0] * t[n, 0] + H_R[i, a, 1] * t[n, 1]
+                                         + H_R[i, a, 2] * t[n, 2])
+            for b in range(3):
+                H_R[i + 1, a, b] = (H_R[i, a, 0] * R[n, 0, b] + H_R[i, a, 1] * R[n, 1, b]
+                                    + H_R[i, a, 2] * R[n, 2, b])
+
+
+@kernel
 def chain_block_into(
     A: Array, R_parent: Array, R_node: Array, v: Array, dof: Dof, out: Array
 ) -> None:
@@ -249,25 +266,18 @@ def path_linearization(
     la = len(a_chain)
     lb = len(b_chain)
     p = len(dof)
-    # Poses in the root's frame: R_all[i], x_all[i] of node i, R_all[i - 1] its parent's.
-    R_all = np.empty((la + lb, 3, 3))
-    x_all = np.empty((la + lb, 3))
-    ends_R = np.empty((2, 3, 3))
-    ends_x = np.zeros((2, 3))
-    eye = np.eye(3)
-    for c in range(2):
-        chain = a_chain if c == 0 else b_chain
-        off = 0 if c == 0 else la
-        R = eye
-        x = ends_x[c]
-        for i in range(len(chain)):
-            n = chain[i]
-            geo.add_mulv3(R, tree_t[n], x)
-            x_all[off + i] = x
-            geo.mul3_into(R, tree_R[n], R_all[off + i])
-            R = R_all[off + i]
-        ends_R[c] = R
-    e, Ja, Jb = endpoint_jacobians_one(kind, ends_R[0], ends_x[0], ends_R[1], ends_x[1], Rk, tk)
+    # Poses in the root's frame, each chain after an identity: node i of the a-chain at
+    # i + 1, its parent at i; the b-chain likewise from la + 1.
+    H_R = np.empty((la + lb + 2, 3, 3))
+    H_x = np.empty((la + lb + 2, 3))
+    for first in (0, la + 1):
+        H_R[first] = np.eye(3)
+        H_x[first] = 0.0
+    compose_into(tree_R, tree_t, a_chain, H_R, H_x)
+    compose_into(tree_R, tree_t, b_chain, H_R[la + 1:], H_x[la + 1:])
+    end = (la, la + lb + 1)
+    e, Ja, Jb = endpoint_jacobians_one(kind, H_R[end[0]], H_x[end[0]], H_R[end[1]],
+                                       H_x[end[1]], Rk, tk)
     # The whitening folded into each end's Jacobian once, not into every block.
     A = np.empty((2, p, 6))
     whitened_rows_into(W, Ja, dof, A[0])
@@ -275,11 +285,11 @@ def path_linearization(
     J = np.empty((la + lb, p, p))
     v = np.empty(3)
     for i in range(la + lb):
-        end = 0 if i < la else 1
+        c = 0 if i < la else 1
+        h = i + 1 + c  # the node's row in H_R, H_x
         for k in range(3):
-            v[k] = ends_x[end, k] - x_all[i, k]
-        R_par = eye if i == 0 or i == la else R_all[i - 1]
-        chain_block_into(A[end], R_par, R_all[i], v, dof, J[i])
+            v[k] = H_x[end[c], k] - H_x[h, k]
+        chain_block_into(A[c], H_R[h - 1], H_R[h], v, dof, J[i])
     r = np.empty(p)
     for a in range(p):
         r[a] = e[dof[a]]

@@ -35,7 +35,7 @@ from h2o_slam.core.errors import GraphError
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, chi2
 from h2o_slam.core.hybrid import solve_hybrid
-from h2o_slam.core.jacobians import endpoint_jacobians_one, path_linearization
+from h2o_slam.core.jacobians import ALL_DOF, Dof, endpoint_jacobians_one, path_linearization
 from h2o_slam.core.spd import SPDFactor
 from h2o_slam.core.tree import EdgePath, PoseTree, tree_edges
 
@@ -423,7 +423,7 @@ class H2OSolver:
             return self.B[domain]
         old_nodes, old_blocks = old
         if old_nodes is domain or np.array_equal(old_nodes, domain):
-            return self.B[domain] - old_blocks
+            return _blocks_without(self.B, domain, old_blocks)
         # The tree changed since this edge last contributed.
         self.B[old_nodes] -= old_blocks
         return self.B[domain]
@@ -617,27 +617,56 @@ def _gram(J: Array) -> Array:
     """Diagonal blocks ``Jᵢᵀ Jᵢ`` of ``JᵀJ``, ``(d, p, p)`` from ``(d, m, p)``."""
     d, m, p = J.shape
     out = np.empty((d, p, p))
-    for i in range(d):  # loops: a BLAS call per tiny block costs more than the block
-        for a in range(p):
-            for b in range(a, p):
+    # Block sizes as tuples, so that numba compiles the loops for them: with the sizes
+    # known only at run time the same loops take 7x as long.
+    if m == p == 3:
+        _gram_into(J, (0, 1, 2), (0, 1, 2), out)
+    elif m == p == 6:
+        _gram_into(J, ALL_DOF, ALL_DOF, out)
+    else:
+        _gram_into(J, np.arange(m), np.arange(p), out)
+    return out
+
+
+@kernel
+def _gram_into(J: Array, rows: Dof, cols: Dof, out: Array) -> None:
+    """:func:`_gram` into ``out``; ``rows``/``cols`` are ``range(m)``/``range(p)``."""
+    for i in range(J.shape[0]):
+        for a in range(len(cols)):
+            for b in range(a, len(cols)):
                 acc = 0.0
-                for k in range(m):
+                for k in range(len(rows)):
                     acc += J[i, k, a] * J[i, k, b]
                 out[i, a, b] = acc
                 out[i, b, a] = acc
-    return out
 
 
 @kernel
 def _store_contribution(B: Array, nodes: np.ndarray, B_c: Array, J: Array) -> Array:
     """``B[nodes] = B_c + 𝔅(JᵀJ)``; returns the new contribution ``𝔅(JᵀJ)``."""
     contrib = _gram(J)
-    p = J.shape[2]
+    size = contrib.shape[1] * contrib.shape[2]
+    flat_B = B.reshape(B.shape[0], size)
+    flat_c = contrib.reshape(len(nodes), size)
+    flat_B_c = B_c.reshape(len(nodes), size)
     for i in range(len(nodes)):
-        for a in range(p):
-            for b in range(p):
-                B[nodes[i], a, b] = B_c[i, a, b] + contrib[i, a, b]
+        for q in range(size):
+            flat_B[nodes[i], q] = flat_B_c[i, q] + flat_c[i, q]
     return contrib
+
+
+@kernel
+def _blocks_without(B: Array, nodes: np.ndarray, blocks: Array) -> Array:
+    """``B[nodes] − blocks``, a new ``(len(nodes), p, p)`` array."""
+    out = np.empty(blocks.shape)
+    size = blocks.shape[1] * blocks.shape[2]
+    flat_out = out.reshape(len(nodes), size)
+    flat_B = B.reshape(B.shape[0], size)
+    flat_blocks = blocks.reshape(len(nodes), size)
+    for i in range(len(nodes)):
+        for q in range(size):
+            flat_out[i, q] = flat_B[nodes[i], q] - flat_blocks[i, q]
+    return out
 
 
 @kernel

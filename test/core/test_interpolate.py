@@ -9,13 +9,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from h2o_slam.core import geometry as geo
-from h2o_slam.core import interpolate
+from h2o_slam.core import interpolate, jacobians
 from h2o_slam.core.graph import EARTH
 from h2o_slam.core.solver import H2OSolver, SolverConfig
 
 UNCAPPED = SolverConfig(max_rotation_step_rad=1e9)
 
 
+@settings(deadline=None)  # the first call may compile the kernel
 @given(len_a=st.integers(0, 40), len_b=st.integers(1, 40), d_max=st.integers(1, 50))
 def test_selection_keeps_endpoints_and_covers_the_domain(len_a, len_b, d_max):
     sel = interpolate.select(len_a, len_b, d_max)
@@ -134,3 +135,108 @@ def test_repeated_interpolated_updates_keep_rotations_orthonormal():
             solver.relax(e, d_max=3)
     R = solver.tree.R[: solver.num_nodes]
     assert np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max() < 1e-12
+
+
+def _select_reference(len_a, len_b, d_max):
+    """The selection in plain Python lists (the numpy version it replaced, restated)."""
+    total = len_a + len_b
+    if total <= d_max:
+        return list(range(total)), list(range(total))
+    counts = [min(len_a, d_max), min(len_b, d_max)]
+    if len_a and len_b:  # shared in proportion, each chain keeping at least one
+        counts[0] = min(len_a, max(1, min(d_max - 1, round(d_max * len_a / total))))
+        counts[1] = min(len_b, max(1, d_max - counts[0]))
+    kept, start = [], []
+    for offset, length, k in ((0, len_a, counts[0]), (len_a, len_b, counts[1])):
+        ends = [offset + length - 1 - (i * length) // k for i in reversed(range(k))]
+        kept += ends
+        start += [offset] + [end + 1 for end in ends[:-1]] if ends else []
+    return kept, start
+
+
+@settings(deadline=None)
+@given(len_a=st.integers(0, 2000), len_b=st.integers(1, 2000), d_max=st.integers(1, 300))
+def test_compiled_selection_matches_the_numpy_one(len_a, len_b, d_max):
+    _check_selection(len_a, len_b, d_max)
+
+
+@pytest.mark.parametrize(("len_a", "len_b", "d_max"), [(0, 1427, 75), (700, 727, 75),
+                                                       (1000, 427, 100), (3, 0, 2)])
+def test_compiled_selection_on_long_paths(len_a, len_b, d_max):
+    _check_selection(len_a, len_b, d_max)
+
+
+def _check_selection(len_a, len_b, d_max):
+    sel = interpolate.select(len_a, len_b, d_max)
+    kept, start = _select_reference(len_a, len_b, d_max)
+    assert sel.kept.tolist() == kept
+    assert sel.start.tolist() == start
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), planar=st.booleans(), as_tuple=st.booleans())
+def test_rotated_stiffness_in_the_coordinates_in_use(seed, planar, as_tuple):
+    """``add_rotated_stiffness`` on the coordinates in use equals the full 6×6 ``RᵀSR``
+    restricted to them (planar: for rotations about z)."""
+    rng = np.random.default_rng(seed)
+    dof = geo.PLANAR_DOF if planar else np.arange(6)
+    G = rng.normal(size=(6, 6))
+    S = G @ G.T
+    w = rng.normal(size=3)
+    if planar:
+        w[:2] = 0.0
+    Q = geo.so3_exp(w)
+    rot = np.kron(np.eye(2), Q)
+    want = (rot.T @ S @ rot)[np.ix_(dof, dof)]
+    out = np.eye(len(dof))
+    interpolate.add_rotated_stiffness(np.ascontiguousarray(S[np.ix_(dof, dof)]), Q,
+                                      tuple(int(q) for q in dof) if as_tuple else dof, out,
+                                      np.empty((2, len(dof), len(dof))))
+    np.testing.assert_allclose(out, np.eye(len(dof)) + want, rtol=1e-12, atol=1e-12)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), length=st.integers(0, 12))
+def test_composition_down_a_chain(seed, length):
+    rng = np.random.default_rng(seed)
+    R = geo.so3_exp(rng.normal(size=(20, 3)))
+    t = rng.normal(size=(20, 3))
+    nodes = rng.permutation(20)[:length]
+    H_R = np.empty((length + 1, 3, 3))
+    H_x = np.empty((length + 1, 3))
+    H_R[0], H_x[0] = geo.so3_exp(rng.normal(size=3)), rng.normal(size=3)
+    jacobians.compose_into(R, t, nodes, H_R, H_x)
+    if length:
+        want_R, want_t = geo.cumulative_compose(np.concatenate([H_R[:1], R[nodes]]),
+                                                np.concatenate([H_x[:1], t[nodes]]))
+        np.testing.assert_allclose(H_R, want_R, atol=1e-13)
+        np.testing.assert_allclose(H_x, want_t, atol=1e-13)
+
+
+def test_compliance_is_the_inverse_rotational_diagonal():
+    rng = np.random.default_rng(6)
+    for p, rot in ((3, [2]), (6, [3, 4, 5])):
+        B = rng.uniform(0.5, 2.0, size=(5, p, p))
+        B[2] = 0.0
+        diag = np.einsum("dii->di", B)[:, rot].sum(axis=1)
+        want = 1.0 / (diag + 1e-9 * diag.max())
+        np.testing.assert_allclose(interpolate.compliance(B), want, rtol=1e-15)
+
+
+def test_tree_edges_give_way_only_where_their_contribution_is_their_nodes_alone():
+    p = 3
+    adjust = np.tile(np.eye(p), (4, 1, 1)) * 5.0
+    domain = np.array([10, 11, 12, 13, 14, 15, 16, 17])
+    kept = np.array([1, 3, 5, 7])
+    start = np.array([0, 2, 4, 6])
+    top = np.zeros(8, dtype=bool)
+    top[4] = True  # the third segment holds a subtree top: it keeps B
+    tree_edge = np.full(20, -1)
+    tree_edge[[11, 13, 15, 17]] = [0, 1, 2, 3]
+    own_node = np.array([11, 99, 15, 17])  # edge 1's contribution is not node 13's alone
+    own_block = np.arange(4)[:, None, None] * np.ones((4, p, p))
+    interpolate.give_way(adjust, domain, kept, start, top, tree_edge, own_node, own_block)
+    np.testing.assert_array_equal(adjust[0], 5.0 * np.eye(p))
+    np.testing.assert_array_equal(adjust[1], 0.0)
+    np.testing.assert_array_equal(adjust[2], 0.0)
+    np.testing.assert_array_equal(adjust[3], 5.0 * np.eye(p) - 3.0)

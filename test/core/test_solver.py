@@ -6,14 +6,23 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from graphs import random_graph
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from h2o_slam.core import geometry as geo
+from h2o_slam.core import jacobians
 from h2o_slam.core.exact import ExactSystem
 from h2o_slam.core.graph import EARTH, EdgeKind, chi2, edge_errors
 from h2o_slam.core.hybrid import NULL_TOLERANCE
 from h2o_slam.core.jacobians import endpoint_jacobians
 from h2o_slam.core.modes import build_solver
-from h2o_slam.core.solver import H2OSolver, SolverConfig
+from h2o_slam.core.solver import (
+    H2OSolver,
+    SolverConfig,
+    _blocks_without,
+    _gram,
+    _store_contribution,
+)
 
 UNCAPPED = SolverConfig(max_rotation_step_rad=1e9)
 
@@ -363,3 +372,70 @@ def test_exact_steps_do_not_need_the_regularizer(planar):
     np.testing.assert_array_equal(bare.world_poses()[1], full.world_poses()[1])
     bare.relax(graph.num_edges - 1)  # an edge without a contribution yet relaxes as usual
     assert bare.contribution_size(graph.num_edges - 1) > 0
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), planar=st.booleans(), as_tuple=st.booleans())
+def test_chain_block_is_the_endpoint_jacobian_times_the_chain_jacobian(seed, planar, as_tuple):
+    """``chain_block_into`` forms ``(A M)[:, dof]`` without ``M``: against the product with
+    ``chain_jacobians``' block."""
+    rng = np.random.default_rng(seed)
+    dof = geo.PLANAR_DOF if planar else np.arange(6)
+    A = rng.normal(size=(len(dof), 6))
+    R_parent, R_node = geo.so3_exp(rng.normal(size=(2, 3)))
+    x_node, x_end = rng.normal(size=(2, 3))
+    M = jacobians.chain_jacobians(R_parent[None], R_node[None], x_node[None], x_end)[0]
+    got = np.empty((len(dof), len(dof)))
+    jacobians.chain_block_into(A, R_parent, R_node, x_end - x_node,
+                               tuple(int(q) for q in dof) if as_tuple else dof, got)
+    np.testing.assert_allclose(got, (A @ M)[:, dof], rtol=1e-12, atol=1e-12)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 10_000), shape=st.sampled_from([(3, 3), (6, 6), (2, 3), (4, 4)]))
+def test_gram_blocks_and_their_store(seed, shape):
+    rng = np.random.default_rng(seed)
+    d = 7
+    J = rng.normal(size=(d, *shape))
+    want = np.swapaxes(J, 1, 2) @ J
+    np.testing.assert_allclose(_gram(J), want, rtol=1e-13, atol=1e-13)
+    p = shape[1]
+    B = rng.normal(size=(20, p, p))
+    nodes = rng.permutation(20)[:d]
+    B_c = rng.normal(size=(d, p, p))
+    np.testing.assert_allclose(_blocks_without(B, nodes, B_c), B[nodes] - B_c, rtol=1e-15)
+    expected = B.copy()
+    expected[nodes] = B_c + want
+    np.testing.assert_allclose(_store_contribution(B, nodes, B_c, J), want, rtol=1e-13,
+                               atol=1e-13)
+    np.testing.assert_allclose(B, expected, rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_single_node_contributions_are_mirrored_per_edge(planar):
+    """``_own_node``/``_own_block`` (read by the interpolated update for eq. 3.36's α) agree
+    with ``_contrib`` after updates of every kind and re-parentings."""
+    graph = random_graph(4, planar, n=25, loops=8, gps=2)
+    solver, _ = build_solver(graph)
+
+    def check():
+        for e, contrib in enumerate(solver._contrib):
+            if contrib is None or len(contrib[0]) != 1:
+                assert solver._own_node[e] == -1 or contrib is None, e
+                continue
+            assert solver._own_node[e] == contrib[0][0], e
+            np.testing.assert_array_equal(solver._own_block[e], contrib[1][0])
+
+    check()
+    for e in range(solver.num_edges):
+        if solver.kind[e] == EdgeKind.POSITION:
+            solver.relax_batch([e])
+        else:
+            solver.relax(e, d_max=3 if e % 2 else None)
+    check()
+    edge = next(e for e in range(solver.num_edges) if solver.kind[e] == EdgeKind.RELATIVE
+                and len(solver.path(e).domain) > 2)
+    a, b = int(solver.a[edge]), int(solver.b[edge])
+    node, parent = (b, a) if solver.tree.depth[b] > solver.tree.depth[a] else (a, b)
+    solver.reparent(node, parent, edge)
+    check()
