@@ -122,9 +122,10 @@ def add_rotated_stiffness(S: Array, Q: Array, dof: Dof, out: Array, work: Array)
     """``out += Rᵀ S R`` with ``R = diag(Q, Q)``: a stiffness whose error is turned by the
     rotation ``Q`` (translation and rotation blocks alike), in the coordinates ``dof``.
 
-    ``S`` and ``out`` are ``(p, p)``, ``work`` a ``(2, p, p)`` scratch. Restricting to ``dof``
+    ``S``, ``out`` and the scratch ``work`` are ``(p, p)``. Restricting to ``dof``
     before turning is exact when ``Q`` maps the coordinates in use onto themselves: any
-    rotation for all six, rotations about z for the planar ``(x, y, yaw)``.
+    rotation for all six, rotations about z for the planar ``(x, y, yaw)`` (``p = 3``, taken
+    to be those coordinates).
     """
     p = len(dof)
     if p == 6:  # all six: Qᵀ S_ab Q for each 3×3 block (216 products, not 432)
@@ -132,32 +133,27 @@ def add_rotated_stiffness(S: Array, Q: Array, dof: Dof, out: Array, work: Array)
             for b in range(2):
                 for i in range(3):
                     for j in range(3):
-                        work[0, i, j] = (S[3 * a + i, 3 * b] * Q[0, j]
-                                         + S[3 * a + i, 3 * b + 1] * Q[1, j]
-                                         + S[3 * a + i, 3 * b + 2] * Q[2, j])
+                        work[i, j] = (S[3 * a + i, 3 * b] * Q[0, j]
+                                      + S[3 * a + i, 3 * b + 1] * Q[1, j]
+                                      + S[3 * a + i, 3 * b + 2] * Q[2, j])
                 for i in range(3):
                     for j in range(3):
-                        out[3 * a + i, 3 * b + j] += (Q[0, i] * work[0, 0, j]
-                                                      + Q[1, i] * work[0, 1, j]
-                                                      + Q[2, i] * work[0, 2, j])
+                        out[3 * a + i, 3 * b + j] += (Q[0, i] * work[0, j]
+                                                      + Q[1, i] * work[1, j]
+                                                      + Q[2, i] * work[2, j])
         return
-    # A subset: R restricted to it (zero across the blocks), then Rᵀ (S R) densely.
-    for c in range(p):
-        for b in range(p):
-            same = (dof[c] < 3) == (dof[b] < 3)
-            work[1, c, b] = Q[dof[c] % 3, dof[b] % 3] if same else 0.0
-    for c in range(p):
-        for b in range(p):
-            acc = 0.0
-            for e in range(p):
-                acc += S[c, e] * work[1, e, b]
-            work[0, c, b] = acc
-    for a in range(p):
-        for b in range(p):
-            acc = 0.0
-            for c in range(p):
-                acc += work[1, c, a] * work[0, c, b]
-            out[a, b] += acc
+    if p != 3:
+        raise ValueError("dof must be all six coordinates or the planar three")
+    # Planar (x, y, yaw): Q turns (x, y) and leaves yaw.
+    c00, c01, c10, c11 = Q[0, 0], Q[0, 1], Q[1, 0], Q[1, 1]
+    for i in range(3):  # S R
+        work[i, 0] = S[i, 0] * c00 + S[i, 1] * c10
+        work[i, 1] = S[i, 0] * c01 + S[i, 1] * c11
+        work[i, 2] = S[i, 2]
+    for j in range(3):  # Rᵀ (S R)
+        out[0, j] += c00 * work[0, j] + c10 * work[1, j]
+        out[1, j] += c01 * work[0, j] + c11 * work[1, j]
+        out[2, j] += work[2, j]
 
 
 @kernel
@@ -188,7 +184,7 @@ def _merge_segments(
     P_t[0] = 0.0
     S_acc = np.empty((p, p))
     S_next = np.empty((p, p))
-    work = np.empty((2, p, p))
+    work = np.empty((p, p))
     for j in range(k):
         # k_β: the product of the segment's transforms.
         length = kept[j] - start[j] + 1
@@ -235,7 +231,7 @@ def _tree_edge_constraints(
     S = np.zeros((d, p, p))
     top = np.zeros(d, dtype=np.bool_)
     S_e = np.empty((p, p))
-    work = np.empty((2, p, p))
+    work = np.empty((p, p))
     for i in range(d):
         e = tree_edge[domain[i]]
         if e < 0:

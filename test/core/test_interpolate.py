@@ -191,7 +191,7 @@ def test_rotated_stiffness_in_the_coordinates_in_use(seed, planar, as_tuple):
     out = np.eye(len(dof))
     interpolate.add_rotated_stiffness(np.ascontiguousarray(S[np.ix_(dof, dof)]), Q,
                                       tuple(int(q) for q in dof) if as_tuple else dof, out,
-                                      np.empty((2, len(dof), len(dof))))
+                                      np.empty((len(dof), len(dof))))
     np.testing.assert_allclose(out, np.eye(len(dof)) + want, rtol=1e-12, atol=1e-12)
 
 
