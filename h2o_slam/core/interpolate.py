@@ -195,7 +195,9 @@ def _merge_segments(
         # frame, then that node's own is added.
         S_acc[:] = S[start[j]]
         for pos in range(start[j] + 1, kept[j] + 1):
-            S_next[:] = S[pos]
+            for a in range(p):
+                for b in range(p):
+                    S_next[a, b] = S[pos, a, b]
             add_rotated_stiffness(S_acc, k_R[pos], dof, S_next, work)
             S_acc, S_next = S_next, S_acc
         S_beta[j] = S_acc
