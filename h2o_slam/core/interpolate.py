@@ -327,24 +327,27 @@ def merged_stiffness(
 
 @kernel
 def give_way(
-    adjust: Array, domain: np.ndarray, kept: np.ndarray, start: np.ndarray, top: np.ndarray,
-    tree_edge: np.ndarray, own_node: np.ndarray, own_block: Array,
+    adjust: Array, B_c: Array, domain: np.ndarray, kept: np.ndarray, start: np.ndarray,
+    top: np.ndarray, tree_edge: np.ndarray, own_node: np.ndarray, own_block: Array,
 ) -> None:
     """Turn ``J_βᵀJ_β`` of each kept node (``adjust``, ``(k, p, p)``) into eq. 3.36's
-    ``−J_αᵀJ_α + J_βᵀJ_β`` in place: α, the kept node's tree edge, gives way to β where its
-    contribution to ``B`` is that node's alone (``own_node[α]`` is the node, ``own_block[α]``
-    the block); otherwise, or when the segment holds a subtree top (``top`` per domain
-    position), the segment keeps ``B`` (zero adjustment).
+    ``B_c − J_αᵀJ_α + J_βᵀJ_β`` in place (``B_c`` over the domain): α, the kept node's tree
+    edge, gives way to β where its contribution to ``B`` is that node's alone
+    (``own_node[α]`` is the node, ``own_block[α]`` the block) and the segment is longer than
+    the node; otherwise, or when the segment holds a subtree top (``top`` per domain
+    position), the node keeps ``B_c``.
     """
     for j in range(len(kept)):
         node = domain[kept[j]]
         alpha = tree_edge[node]
-        use = alpha >= 0 and own_node[alpha] == node
+        use = start[j] < kept[j] and alpha >= 0 and own_node[alpha] == node
         for pos in range(start[j], kept[j] + 1):
             use = use and not top[pos]
         for a in range(adjust.shape[1]):
             for b in range(adjust.shape[2]):
-                adjust[j, a, b] = adjust[j, a, b] - own_block[alpha, a, b] if use else 0.0
+                base = B_c[kept[j], a, b]
+                merged = base + (adjust[j, a, b] - own_block[alpha, a, b])
+                adjust[j, a, b] = merged if use else base
 
 
 @kernel

@@ -433,36 +433,34 @@ class H2OSolver:
     ) -> int:
         dom = lin.domain
         sel = interpolate.select(lin.len_a, len(dom) - lin.len_a, d_max)
-        B_sel = B_c[sel.kept]
-        merged = np.flatnonzero(sel.lengths > 1)
-        if len(merged):
-            B_sel[merged] += self._merge_adjustment(lin, sel, merged)
-        x = solve_hybrid(np.ascontiguousarray(lin.J[sel.kept]), lin.r, B_sel)
-        step = np.zeros((len(x), 6))
-        step[:, self.dof] = x * self._step_scale(x, scale)
+        x = solve_hybrid(np.ascontiguousarray(lin.J[sel.kept]), lin.r,
+                         self._merged_regularizer(lin, sel, B_c))
+        tau = self.temperature if scale is None else scale
+        step, compliance = _interpolated_step(x, self._dof, tau,
+                                              self.config.max_rotation_step_rad, B_c)
         interpolate.distribute_into(self.tree.R, self.tree.t, dom, sel.kept, sel.start, step,
-                                    self._compliance(B_c))
+                                    compliance)
         return len(sel.kept)
 
-    def _merge_adjustment(
-        self, lin: Linearization, sel: interpolate.Selection, merged: np.ndarray
+    def _merged_regularizer(
+        self, lin: Linearization, sel: interpolate.Selection, B_c: Array
     ) -> Array:
-        """``−J_αᵀJ_α + J_βᵀJ_β`` (eq. 3.36) for the kept nodes ending merged segments.
+        """``B̃ = B_c − J_αᵀJ_α + J_βᵀJ_β`` (eq. 3.36) at the kept nodes, ``(k, p, p)``.
 
-        Segments that contain a subtree top (tied to the earth by no edge) keep ``B``.
+        Segments of one node, and segments that contain a subtree top (tied to the earth by
+        no edge), keep ``B_c``.
         """
         dom = lin.domain
-        kept, start = sel.kept[merged], sel.start[merged]
         table = self._edges
         k_R, k_t, S, top = interpolate.tree_edge_constraints(
             dom, self.tree_edge, self.tree_edge_forward, table.meas_R, table.meas_t, table.info,
             self._dof)
-        R_b, t_b, S_b = interpolate._merge_segments(kept, start, k_R, k_t, S, self._dof)
-        adjust = interpolate.merged_stiffness(
-            self.tree.R, self.tree.t, dom, kept, start, R_b, t_b, S_b, self._dof)
-        interpolate.give_way(adjust, dom, kept, start, top, self.tree_edge, self._own_node,
-                             self._own_block)
-        return adjust
+        R_b, t_b, S_b = interpolate._merge_segments(sel.kept, sel.start, k_R, k_t, S, self._dof)
+        out = interpolate.merged_stiffness(
+            self.tree.R, self.tree.t, dom, sel.kept, sel.start, R_b, t_b, S_b, self._dof)
+        interpolate.give_way(out, B_c, dom, sel.kept, sel.start, top, self.tree_edge,
+                             self._own_node, self._own_block)
+        return out
 
     def _compliance(self, B: Array) -> Array:
         """Distribution weights ``1 / diag(B)`` over the rotational coordinates (TORO)."""
@@ -682,6 +680,20 @@ def _capped_scale(x: Array, tau: float, cap: float) -> float:
             acc += x[i, q] * x[i, q]
         largest = max(largest, np.sqrt(acc))
     return tau if largest * tau <= cap else cap / largest
+
+
+@kernel
+def _interpolated_step(
+    x: Array, dof: Dof, tau: float, cap: float, B_c: Array
+) -> tuple[Array, Array]:
+    """The kept nodes' local steps ``(δt, δθ)`` (``(k, 6)``) from ``x`` (``(k, p)``) scaled by τ
+    and capped (3.3.11), and the distribution weights of the domain from ``B_c``."""
+    scale = _capped_scale(x, tau, cap)
+    step = np.zeros((x.shape[0], 6))
+    for i in range(x.shape[0]):
+        for q in range(len(dof)):
+            step[i, dof[q]] = x[i, q] * scale
+    return step, interpolate.compliance(B_c)
 
 
 @kernel

@@ -225,18 +225,21 @@ def test_compliance_is_the_inverse_rotational_diagonal():
 
 def test_tree_edges_give_way_only_where_their_contribution_is_their_nodes_alone():
     p = 3
-    adjust = np.tile(np.eye(p), (4, 1, 1)) * 5.0
-    domain = np.array([10, 11, 12, 13, 14, 15, 16, 17])
-    kept = np.array([1, 3, 5, 7])
-    start = np.array([0, 2, 4, 6])
-    top = np.zeros(8, dtype=bool)
-    top[4] = True  # the third segment holds a subtree top: it keeps B
+    adjust = np.tile(np.eye(p), (5, 1, 1)) * 5.0  # J_βᵀJ_β of each kept node
+    B_c = np.arange(9)[:, None, None] * np.ones((9, p, p))
+    domain = np.array([10, 11, 12, 13, 14, 15, 16, 17, 18])
+    kept = np.array([1, 3, 5, 7, 8])
+    start = np.array([0, 2, 4, 6, 8])
+    top = np.zeros(9, dtype=bool)
+    top[4] = True  # the third segment holds a subtree top: it keeps B_c
     tree_edge = np.full(20, -1)
-    tree_edge[[11, 13, 15, 17]] = [0, 1, 2, 3]
-    own_node = np.array([11, 99, 15, 17])  # edge 1's contribution is not node 13's alone
-    own_block = np.arange(4)[:, None, None] * np.ones((4, p, p))
-    interpolate.give_way(adjust, domain, kept, start, top, tree_edge, own_node, own_block)
-    np.testing.assert_array_equal(adjust[0], 5.0 * np.eye(p))
-    np.testing.assert_array_equal(adjust[1], 0.0)
-    np.testing.assert_array_equal(adjust[2], 0.0)
-    np.testing.assert_array_equal(adjust[3], 5.0 * np.eye(p) - 3.0)
+    tree_edge[[11, 13, 15, 17, 18]] = [0, 1, 2, 3, 4]
+    own_node = np.array([11, 99, 15, 17, 18])  # edge 1's contribution is not node 13's alone
+    own_block = np.arange(5)[:, None, None] * np.ones((5, p, p))
+    interpolate.give_way(adjust, B_c, domain, kept, start, top, tree_edge, own_node,
+                         own_block)
+    np.testing.assert_array_equal(adjust[0], 1.0 + 5.0 * np.eye(p))  # B_c − α + β
+    np.testing.assert_array_equal(adjust[1], B_c[3])
+    np.testing.assert_array_equal(adjust[2], B_c[5])
+    np.testing.assert_array_equal(adjust[3], 7.0 + 5.0 * np.eye(p) - 3.0)
+    np.testing.assert_array_equal(adjust[4], B_c[8])  # a segment of one node: no merge
