@@ -702,13 +702,19 @@ def _apply_local(
 ) -> None:
     """``t ← t + δt``, ``R ← R Exp(δθ)`` (renormalized) for the scaled local step ``x``."""
     full = np.zeros(6)
+    # Scratch matrices reused for every node: three allocations a node were 170 µs of the
+    # full update on a 1427-node path.
+    turn = np.empty((3, 3))
+    moved = np.empty((3, 3))
     for i in range(len(nodes)):
         for q in range(len(dof)):
             full[dof[q]] = scale * x[i, q]
         n = nodes[i]
         for k in range(3):
             tree_t[n, k] += full[k]
-        tree_R[n] = geo.renormalize_one(geo.mul3(tree_R[n], geo.so3_exp_one(full[3:])))
+        geo.so3_exp_into(full[3:], turn)
+        geo.mul3_into(tree_R[n], turn, moved)
+        geo.renormalize_into(moved, tree_R[n])
 
 
 @kernel
