@@ -50,10 +50,15 @@ class ExactSystem:
         self.solver = solver
         self._world: WorldSystem | None = None
 
-    def linearize(self) -> WorldLinearization:
-        """Every edge linearized at the solver's current estimate."""
+    def linearize(self, kept: WorldSystem | None = None) -> WorldLinearization:
+        """Every edge linearized at the solver's current estimate.
+
+        ``kept``: the system of an earlier linearization, for a caller that knows the edges
+        and the tree's structure have not changed since (the iterations of one solve): the
+        free nodes are then not derived and compared again.
+        """
         R, x = self.solver.world_poses()
-        system = self._system()
+        system = self._system() if kept is None else kept
         data, g, chi2 = system.normal_equations(self.solver, R, x)
         return WorldLinearization(R, x, system, data, g, chi2)
 
@@ -161,7 +166,7 @@ def damped_step(system: ExactSystem, lin: WorldLinearization, damping: float
     saved_t = solver.tree.t.copy()
     for _ in range(12):
         system.move(lin, damping)
-        new = system.linearize()
+        new = system.linearize(lin.system)  # a step moves poses, never the structure
         if np.isfinite(new.chi2) and new.chi2 <= lin.chi2:
             return damping / 10.0 if damping > 1e-9 else 0.0, new
         solver.tree.R[:] = saved_R
