@@ -205,8 +205,8 @@ class WorldSystem:
 
     Built once per set of edges and free nodes and reused by every iteration and damping
     retry: the sparsity pattern, the map that scatters every edge's ``[J_a | J_b]ᵀ[J_a |
-    J_b]`` into it (one ``np.bincount``, duplicates summed), and the factorization's
-    symbolic analysis (:class:`~h2o_slam.core.spd.SPDFactor`).
+    J_b]`` into it (summed by :func:`_normal_equations` as it linearizes each edge), and the
+    factorization's symbolic analysis (:class:`~h2o_slam.core.spd.SPDFactor`).
 
     Args:
         a, b: endpoints of every edge (``a`` is :data:`EARTH` for global edges).
