@@ -71,7 +71,7 @@ def toro_update(solver: H2OSolver, edge: int) -> None:
     end = moved[-1]
     step = np.concatenate([local_t - tree.t[end],
                            geo.so3_log(tree.R[end].T @ local_R)])[None] * solver.temperature
-    compliance = solver._compliance(solver.B[moved])
+    compliance = interpolate.compliance(np.ascontiguousarray(solver.B[moved]))
     interpolate.distribute_into(tree.R, tree.t, moved, np.array([len(moved) - 1]),
                                 np.array([0]), step, compliance)
 

@@ -462,10 +462,6 @@ class H2OSolver:
                              self._own_node, self._own_block)
         return out
 
-    def _compliance(self, B: Array) -> Array:
-        """Distribution weights ``1 / diag(B)`` over the rotational coordinates (TORO)."""
-        return interpolate.compliance(np.ascontiguousarray(B))
-
     def relax_batch(self, edges: list[int] | np.ndarray) -> None:
         """Batch update of a set of edges (thesis 3.3.7, eq. 3.40–3.42).
 
@@ -509,10 +505,9 @@ class H2OSolver:
         )
         return J, np.concatenate([lin.r for lin in lins])
 
-    def _step_scale(self, x: Array, scale: float | None = None) -> float:
-        """τ (or ``scale``), reduced so that no node turns by more than the cap (3.3.11)."""
-        tau = self.temperature if scale is None else scale
-        return float(_capped_scale(np.ascontiguousarray(x), tau,
+    def _step_scale(self, x: Array) -> float:
+        """τ, reduced so that no node turns by more than the cap (3.3.11)."""
+        return float(_capped_scale(np.ascontiguousarray(x), self.temperature,
                                    self.config.max_rotation_step_rad))
 
     def _apply(self, nodes: np.ndarray, x: Array, scale: float) -> None:

@@ -368,19 +368,20 @@ def spanning_parents(
     incoming = np.repeat([0, 1], len(a))
     order = np.lexsort((others, incoming, ends))
     first = np.searchsorted(ends[order], np.arange(num_nodes + 1))
-    starts = np.array(list(roots or []) + list(range(num_nodes)), dtype=np.int64)
     parent = np.full(num_nodes, -2, dtype=np.int64)
-    _breadth_first_forest(first, others[order], starts, parent)
+    _breadth_first_forest(first, others[order], np.asarray(roots or [], dtype=np.int64),
+                          parent)
     return parent
 
 
 @kernel
-def _breadth_first_forest(first: np.ndarray, neighbours: np.ndarray, starts: np.ndarray,
+def _breadth_first_forest(first: np.ndarray, neighbours: np.ndarray, roots: np.ndarray,
                           parent: np.ndarray) -> None:
-    """Breadth-first trees from each start not yet reached (``parent`` -2: unreached); a
-    tree's start hangs from the earth."""
+    """Breadth-first trees from each root, then from each node still unreached (``parent``
+    -2), in index order; a tree's start hangs from the earth."""
     queue = np.empty(len(parent), dtype=np.int64)
-    for s in starts:
+    for i in range(len(roots) + len(parent)):
+        s = roots[i] if i < len(roots) else i - len(roots)
         if parent[s] != -2:
             continue
         parent[s] = EARTH
