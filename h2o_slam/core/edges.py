@@ -1,8 +1,10 @@
 """The solver's edge table: every edge's kind, endpoints, measurement, information and
 whitening, in growable arrays that vector code reads as views.
 
-An edge's whitening ``W`` (``Wᵀ W = S``, its information in the solver's coordinates) is
-computed once, when the edge is stored: every update that linearizes the edge uses it.
+An edge's whitening ``W`` (``Wᵀ W = w S``, its information in the solver's coordinates
+scaled by its robust weight ``w``, 1 unless :mod:`h2o_slam.core.robust` lowers it) is
+computed once, when the edge is stored, and rescaled when its weight changes: every update
+that linearizes the edge uses it.
 """
 
 from __future__ import annotations
@@ -36,6 +38,8 @@ class EdgeTable:
         self.meas_t = np.zeros((capacity, 3))
         self.info = np.zeros((capacity, 6, 6))
         self.W = np.zeros((capacity, p, p))
+        self.W_unit = np.zeros((capacity, p, p))  # the whitening at weight 1
+        self.weight = np.ones(capacity)
 
     def append(
         self, kind: int, a: int, b: int, meas_R: Array, meas_t: Array, info: Array,
@@ -46,7 +50,8 @@ class EdgeTable:
         e = self.m
         self.kind[e], self.a[e], self.b[e] = kind, a, b
         self.meas_R[e], self.meas_t[e], self.info[e] = meas_R, meas_t, info
-        self.W[e] = whitening(self.info[e], dof)
+        self.W[e] = self.W_unit[e] = whitening(self.info[e], dof)
+        self.weight[e] = 1.0
         self.m += 1
         return e
 
@@ -67,14 +72,21 @@ class EdgeTable:
             self.W[s] = np.swapaxes(np.linalg.cholesky(S), -1, -2)
         except np.linalg.LinAlgError:
             self.W[s] = [whitening(x, dof) for x in self.info[s]]
+        self.W_unit[s] = self.W[s]
+        self.weight[s] = 1.0
         self.m = end
+
+    def set_weights(self, edges: np.ndarray | slice, weights: Array) -> None:
+        """Scale the information of ``edges`` by ``weights`` (each in [0, 1])."""
+        self.weight[edges] = weights
+        self.W[edges] = np.sqrt(self.weight[edges])[:, None, None] * self.W_unit[edges]
 
     def _reserve(self, size: int) -> None:
         """Room for ``size`` edges: capacity at least doubles, so appends stay O(1)."""
         if size <= len(self.kind):
             return
         capacity = max(size, 2 * len(self.kind))
-        for name in ("kind", "a", "b", "meas_R", "meas_t", "info", "W"):
+        for name in ("kind", "a", "b", "meas_R", "meas_t", "info", "W", "W_unit", "weight"):
             old = getattr(self, name)
             grown = np.zeros((capacity, *old.shape[1:]), dtype=old.dtype)
             grown[: self.m] = old[: self.m]

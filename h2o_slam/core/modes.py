@@ -27,6 +27,13 @@ from h2o_slam.core.exact import converge_exact
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, chi2, edge_chi2
 from h2o_slam.core.online import OnlineConfig, OnlineH2O
+from h2o_slam.core.robust import (
+    RobustConfig,
+    converge_robust,
+    odometry_edges,
+    thresholds,
+    tls_cost,
+)
 from h2o_slam.core.solver import H2OSolver, SolverConfig
 from h2o_slam.core.tree import PoseTree, spanning_parents, tree_edges
 
@@ -56,6 +63,8 @@ class SolveResult:
         exact: online mode: what the exact solves beside the updates did.
         samples: online mode: ``(poses so far, χ² of their edges at the estimate then)``
             after the callback of each pose in ``sample_nodes`` (see :func:`sample_points`).
+        weights: robust exact mode: every edge's final weight (0: dropped as an outlier).
+        init: robust exact mode: the start whose answer was kept.
         start: offline and exact modes: the starting estimate ``(R, t)`` (``chi2_initial``
             is its χ²); ``None``: the graph's own.
     """
@@ -77,6 +86,8 @@ class SolveResult:
     samples: list[tuple[int, float]] = field(default_factory=list)
     exact: ConvergeState | None = None
     start: tuple[Array, Array] | None = None
+    weights: Array | None = None
+    init: str | None = None
 
     @property
     def chi2_final(self) -> float:
@@ -96,7 +107,7 @@ Progress = Callable[[int, float], None]
 
 def build_solver(
     graph: PoseGraph, config: SolverConfig | None = None, init: str = "tree",
-    regularizer: bool = True,
+    regularizer: bool = True, trusted: np.ndarray | None = None,
 ) -> tuple[H2OSolver, PoseGraph]:
     """A solver over the whole graph on a breadth-first spanning tree of its relative edges.
 
@@ -104,14 +115,15 @@ def build_solver(
     ``init="tree"`` starts, as the thesis does (3.4.2), from the tree edges' measurements
     concatenated down from the root, so that every tree edge starts with zero error;
     ``init="lago"`` starts from the LAGO linear approximation (planar graphs only).
-    ``regularizer=False`` skips building ``B`` (exact mode never reads it).
+    ``regularizer=False`` skips building ``B`` (exact mode never reads it). ``trusted``: edges
+    the spanning tree is grown from first (the odometry of a robust solve, so that a false
+    loop closure never becomes a tree edge and places the start).
 
     Returns the solver and the graph holding the starting estimate.
     """
     if init not in INITS:
         raise ValueError(f"unknown init {init!r}; choose one of {', '.join(INITS)}")
-    rel = graph.kind == EdgeKind.RELATIVE
-    parents = spanning_parents(graph.num_nodes, graph.a[rel], graph.b[rel])
+    parents = _spanning_tree(graph, trusted)
     if init == "tree":
         graph = graph.with_estimate(*tree_estimate(graph, parents))
     elif init == "lago":
@@ -121,6 +133,18 @@ def build_solver(
         start = lago(graph, ignore_global=True)
         graph = graph.with_estimate(start.R, start.t)
     return H2OSolver.from_graph(graph, parents, config, regularizer), graph
+
+
+def _spanning_tree(graph: PoseGraph, trusted: np.ndarray | None) -> np.ndarray:
+    """Breadth-first spanning forest of the relative edges; of the ``trusted`` ones when
+    they alone connect the graph."""
+    rel = graph.kind == EdgeKind.RELATIVE
+    if trusted is not None:
+        use = rel & trusted
+        parents = spanning_parents(graph.num_nodes, graph.a[use], graph.b[use])
+        if np.count_nonzero(parents == EARTH) <= 1:
+            return parents
+    return spanning_parents(graph.num_nodes, graph.a[rel], graph.b[rel])
 
 
 def tree_estimate(graph: PoseGraph, parents: np.ndarray) -> tuple[Array, Array]:
@@ -185,7 +209,7 @@ def solve_offline(
 
 def solve_exact(
     graph: PoseGraph, iterations: int = EXACT_ITERATIONS, config: SolverConfig | None = None,
-    init: str = "tree",
+    init: str = "tree", robust: RobustConfig | None = None,
 ) -> SolveResult:
     """Gauss–Newton on the batch of all edges, with Levenberg damping when χ² would rise,
     until the relative χ² decrease falls to ``config.exact_tolerance`` or no step helps
@@ -193,14 +217,81 @@ def solve_exact(
 
     ``result.chi2_per_pass`` holds the χ² after each iteration run (its length is the
     iteration count).
+
+    ``robust``: loop closures and GPS fixes weighed by GNC-TLS (:mod:`h2o_slam.core.robust`),
+    odometry trusted; ``result.weights`` holds every edge's final weight and the χ² entries
+    are of the weighted graph. With ``init="tree"`` a robust solve runs from the odometry's
+    own tree and, for a planar graph, from LAGO too, and keeps the answer of lower TLS cost:
+    least squares over every edge (GNC's first solve) has local minima, and which start
+    avoids them depends on the graph (measured: from LAGO, MIT without outliers reaches the
+    optimum where the odometry start ends at 18.7x it; intel with 10 false closures ends
+    14 m off from LAGO and on the outlier-free map from the odometry).
     """
-    solver, start = build_solver(graph, config, init, regularizer=False)
-    history, converged = converge_exact(solver, iterations)
+    if robust is None:
+        solver, start = build_solver(graph, config, init, regularizer=False)
+        history, converged = converge_exact(solver, iterations)
+        return _exact_result(solver, start, history, converged, None)
+    starts = [init] if init != "tree" else (
+        ["tree", "lago"] if graph.planar and not _has_global(graph) else ["tree"])
+    best: tuple[float, SolveResult] | None = None
+    for name in starts:
+        result = _solve_robust(graph, iterations, config, name, robust)
+        cost = robust_cost(graph, result.R, result.t, robust)
+        if best is None or cost < best[0]:
+            best = (cost, result)
+    assert best is not None
+    return best[1]
+
+
+def _solve_robust(graph: PoseGraph, iterations: int, config: SolverConfig | None, init: str,
+                  robust: RobustConfig) -> SolveResult:
+    trusted = odometry_edges(graph.kind, graph.a, graph.b)
+    solver, start = build_solver(graph, config, init, regularizer=False, trusted=trusted)
+    restart = _lago_restart(graph) if graph.planar else None
+    outcome = converge_robust(solver, iterations, trusted, robust, restart=restart)
+    return _exact_result(solver, start, outcome.history, outcome.converged, init)
+
+
+def _exact_result(solver: H2OSolver, start: PoseGraph, history: list[float], converged: bool,
+                  robust_init: str | None) -> SolveResult:
     result = SolveResult(start.R.copy(), start.t.copy(), history[0], history[1:],
                          start=(start.R, start.t))
     result.converged = converged
+    if robust_init is not None:
+        result.weights = solver.weight.copy()
+        result.init = robust_init
     result.R, result.t = solver.world_poses()
     return result
+
+
+def robust_cost(graph: PoseGraph, R: Array, t: Array, robust: RobustConfig) -> float:
+    """The TLS cost the robust solve minimizes, of ``graph`` at ``(R, t)``: odometry's χ²
+    plus each other edge's χ², at most its threshold."""
+    trusted = odometry_edges(graph.kind, graph.a, graph.b)
+    c2 = thresholds(graph.kind, graph.planar, robust.inlier_probability)
+    return tls_cost(edge_chi2(graph, R, t), ~trusted, c2)
+
+
+def _has_global(graph: PoseGraph) -> bool:
+    return bool(np.any(graph.kind != EdgeKind.RELATIVE))
+
+
+def _lago_restart(graph: PoseGraph) -> Callable[[Array], tuple[Array, Array]]:
+    """LAGO of ``graph`` with each edge's information scaled by a weight (0: left out): the
+    robust solve's cold start for a set of accepted edges (no initial guess, no local
+    minimum to fall into)."""
+    from h2o_slam.core.lago import lago
+
+    def start(weights: Array) -> tuple[Array, Array]:
+        keep = (weights > 0.0) & (graph.kind == EdgeKind.RELATIVE)
+        sub = graph.copy()
+        for name in ("kind", "a", "b", "meas_R", "meas_t"):
+            setattr(sub, name, getattr(graph, name)[keep])
+        sub.info = graph.info[keep] * weights[keep][:, None, None]
+        result = lago(sub, ignore_global=True)
+        return result.R, result.t
+
+    return start
 
 
 def solve_lago(graph: PoseGraph) -> SolveResult:

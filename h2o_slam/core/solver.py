@@ -176,6 +176,17 @@ class H2OSolver:
         """Whitening ``W`` (``WᵀW = S`` in the coordinates in use) of each edge."""
         return self._edges.W[: self._edges.m]
 
+    @property
+    def weight(self) -> Array:
+        """Robust weight of each edge (1 unless :mod:`h2o_slam.core.robust` lowered it)."""
+        return self._edges.weight[: self._edges.m]
+
+    def set_weights(self, weights: Array, edges: np.ndarray | None = None) -> None:
+        """Set the robust weights of ``edges`` (all when ``None``); each in [0, 1]. The
+        contributions to ``B`` keep the old weights until the edges are refreshed."""
+        which: np.ndarray | slice = slice(0, self.num_edges) if edges is None else edges
+        self._edges.set_weights(which, np.asarray(weights, dtype=float))
+
     def add_pose(self, R_world: Array, t_world: Array) -> int:
         """Add a node hanging from the earth at a world pose (a new subtree)."""
         node = self.tree.add_node(EARTH, R_world, t_world)

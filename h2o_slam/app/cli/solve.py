@@ -35,7 +35,7 @@ from h2o_slam.app.cli.common import (
 from h2o_slam.core.chi2_metrics import METRICS, all_chi2
 from h2o_slam.core.compiled import warm_up
 from h2o_slam.core.errors import H2OError, InputError
-from h2o_slam.core.graph import PoseGraph
+from h2o_slam.core.graph import PoseGraph, edge_chi2
 from h2o_slam.core.modes import (
     EXACT_ITERATIONS,
     INITS,
@@ -48,12 +48,14 @@ from h2o_slam.core.modes import (
     solve_online,
 )
 from h2o_slam.core.online import OnlineConfig
+from h2o_slam.core.robust import EdgeState, RobustConfig, edge_states, odometry_edges
 from h2o_slam.core.solver import SolverConfig
 from h2o_slam.io.g2o import read_g2o, write_g2o
 from h2o_slam.io.synthetic import add_gps
 
 MODES = ("exact", "offline", "online")
 SOLVERS = ("h2o", "lago")
+ROBUST = ("auto", "gnc", "off")
 DEFAULT_PASSES = {"offline": 10, "online": 0, "exact": EXACT_ITERATIONS}
 PROG = "h2o-solve"
 
@@ -83,6 +85,9 @@ class SolveOptions:
             the stream and as many after loop closures (0: none).
         period_ms: online mode: one pose arrives every this many ms, with idle steps between
             (a robot's keyframe rate); 0: each as soon as the last callback returns.
+        robust: ``auto`` (GNC-TLS in exact mode, none elsewhere), ``gnc`` or ``off``: loop
+            closures and GPS fixes weighed as possible outliers, odometry trusted
+            (:mod:`h2o_slam.core.robust`).
     """
 
     mode: str = "exact"
@@ -98,6 +103,14 @@ class SolveOptions:
     idle_s: float = 1.0
     samples: int = 0
     period_ms: float = 0.0
+    robust: str = "auto"
+
+    @property
+    def robust_config(self) -> RobustConfig | None:
+        """The robust estimation to run: GNC-TLS in H₂O's exact mode unless ``off``."""
+        on = self.robust == "gnc" or (self.robust == "auto" and self.mode == "exact"
+                                      and self.solver == "h2o")
+        return RobustConfig() if on else None
 
     def __post_init__(self) -> None:
         for name, value, allowed in (("solver", self.solver, SOLVERS),
@@ -122,6 +135,10 @@ class SolveOptions:
             raise InputError("--samples must be non-negative")
         if not 0.0 <= self.period_ms < math.inf:
             raise InputError("--period-ms must be a non-negative number of milliseconds")
+        if self.robust not in ROBUST:
+            raise InputError(f"unknown robust {self.robust!r}; choose one of {', '.join(ROBUST)}")
+        if self.robust == "gnc" and (self.mode != "exact" or self.solver != "h2o"):
+            raise InputError("--robust gnc applies to --mode exact with --solver h2o only")
         if self.period_ms and (self.mode != "online" or self.budget_ms is None):
             raise InputError("--period-ms applies to --mode online with --budget-ms only")
 
@@ -162,6 +179,7 @@ class SolveReport:
     updates: int | None = None
     exact: dict[str, Any] | None = None
     samples: list[list[float]] | None = None
+    robust: dict[str, Any] | None = None
 
 
 def solve_file(
@@ -213,7 +231,7 @@ def solve_file(
         input=str(input_path), solver=opt.solver,
         mode="lago" if lago else opt.mode,
         # LAGO needs no starting estimate; online mode grows its tree from the arrivals.
-        init=None if lago else ("tree" if online else opt.init),
+        init=None if lago else ("tree" if online else result.init or opt.init),
         passes=0 if lago else (len(result.chi2_per_pass) if exact else passes),
         nodes=graph.num_nodes, edges=graph.num_edges,
         chi2_initial=metrics["initial"][metric], chi2_final=metrics["final"][metric],
@@ -233,8 +251,27 @@ def solve_file(
         updates=result.updates if online else None,
         exact=asdict(result.exact) if result.exact is not None else None,
         samples=[list(sample) for sample in result.samples] if online else None,
+        robust=_robust_summary(graph, result),
     )
     return report, result
+
+
+def _robust_summary(graph: PoseGraph, result: SolveResult) -> dict[str, Any] | None:
+    """The report's account of a robust solve: what was weighed, kept and dropped, and χ²
+    of the edges kept (what the solve minimized; ``chi2_final`` counts every edge)."""
+    if result.weights is None:
+        return None
+    trusted = odometry_edges(graph.kind, graph.a, graph.b)
+    states = edge_states(result.weights, trusted)
+    kept = result.weights > 0.5
+    return {
+        "method": "gnc-tls", "inlier_probability": RobustConfig().inlier_probability,
+        "weighed": int(np.count_nonzero(~trusted)),
+        "accepted": int(np.count_nonzero(states == EdgeState.ACCEPTED)),
+        "dropped": int(np.count_nonzero(states == EdgeState.DROPPED)),
+        "dropped_edges": np.flatnonzero(states == EdgeState.DROPPED).tolist(),
+        "chi2_accepted": float(np.sum(edge_chi2(graph, result.R, result.t)[kept])),
+    }
 
 
 def _start(graph: PoseGraph, result: SolveResult) -> tuple[np.ndarray, np.ndarray]:
@@ -259,7 +296,7 @@ def _solve(graph: PoseGraph, opt: SolveOptions, passes: int,
                             trace_every=max(1, graph.num_nodes // 200), idle_s=opt.idle_s,
                             sample_nodes=sample_points(graph, opt.samples),
                             period_s=opt.period_ms / 1e3)
-    return solve_exact(graph, passes, config, init=opt.init)
+    return solve_exact(graph, passes, config, init=opt.init, robust=opt.robust_config)
 
 
 def _percentiles(times_ms: list[float]) -> dict[str, float]:
@@ -319,6 +356,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="online mode with --budget-ms: one pose arrives every this many ms, "
                         "idle steps between (a robot's keyframe rate); default 0: each pose "
                         "as soon as the last callback returns (the worst case)")
+    p.add_argument("--robust", choices=ROBUST, default="auto",
+                   help="loop closures and GPS fixes as possible outliers (GNC with a "
+                        "truncated quadratic; odometry trusted): auto = in exact mode "
+                        "(default), gnc, or off (plain least squares)")
     p.add_argument("--report", type=Path, default=None, help="write a JSON report here")
     p.add_argument("--trace", type=Path, default=None,
                    help="online mode: write per-callback times and chi2 samples (JSON) here")
@@ -334,7 +375,7 @@ def _options(args: argparse.Namespace) -> SolveOptions:
         solver=args.solver, d_max=args.d_max, budget_ms=args.budget_ms,
         gps_batch_size=args.gps_batch_size, gps_every=args.gps_every,
         gps_sigma_m=args.gps_sigma, idle_s=args.idle_s, samples=args.samples,
-        period_ms=args.period_ms,
+        period_ms=args.period_ms, robust=args.robust,
     )
 
 
@@ -375,6 +416,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{PROG}: warning: exact mode stopped at its cap of {report.max_iterations} "
               f"iterations, chi2 still falling ({rate:.2g} of it in the last); raise "
               "--passes or --tolerance", file=sys.stderr)
+    if report.robust is not None and report.robust["dropped"]:
+        print(f"{PROG}: robust: dropped {report.robust['dropped']} of "
+              f"{report.robust['weighed']} loop closures and fixes as outliers (listed in the "
+              "report's robust.dropped_edges)", file=sys.stderr)
     text = json.dumps(asdict(report), indent=2)
     if args.report is not None:
         args.report.write_text(text + "\n")
