@@ -128,7 +128,7 @@ def tls_weights(r2: Array, mu: float, c2: Array) -> Array:
     r2 = np.asarray(r2, dtype=float)
     lo = mu / (mu + 1.0) * c2
     hi = (mu + 1.0) / mu * c2
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(all="ignore"):  # r² = 0 or tiny: that branch is not taken
         mid = np.sqrt(c2 / r2) * math.sqrt(mu * (mu + 1.0)) - mu
     return np.where(r2 <= lo, 1.0, np.where(r2 >= hi, 0.0, np.clip(mid, 0.0, 1.0)))
 

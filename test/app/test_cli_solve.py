@@ -119,7 +119,9 @@ def test_default_is_exact_to_convergence_from_the_tree(planar_file, tmp_path, ca
                        capsys)
     data = json.loads(report.read_text())
     assert code == 0 and err == []
-    assert (data["mode"], data["init"], data["converged"]) == ("exact", "tree", True)
+    assert (data["mode"], data["converged"]) == ("exact", True)
+    # The robust default runs from the odometry's tree and from LAGO and names the start kept.
+    assert data["init"] in ("tree", "lago") and data["robust"]["dropped"] == 0
     # passes is what ran, not the cap.
     assert data["passes"] == data["iterations"] == len(data["chi2_per_pass"]) < 100
     assert data["max_iterations"] == 100 and data["tolerance"] == 1e-10
@@ -230,3 +232,45 @@ def test_a_solve_longer_than_a_second_prints_progress(planar_file, tmp_path, cap
     assert code == 0 and err and err[0].startswith("h2o-solve: offline: pass 1, chi2 123 ("), err
     code, err, _ = run([*argv, "--quiet"], capsys)
     assert code == 0 and err == []
+
+
+def test_default_exact_solve_drops_planted_false_closures(tmp_path, capsys):
+    """A file with false loop closures: the default (robust) solve names and drops them and
+    reaches the outlier-free optimum; ``--robust off`` is bent by them."""
+    from h2o_slam.io.outliers import plant_outliers
+
+    clean = manhattan(120, seed=2).graph
+    planted = plant_outliers(clean, "random", 5, seed=1)
+    path = tmp_path / "planted.g2o"
+    write_g2o(path, planted.graph)
+    out, report = tmp_path / "o.g2o", tmp_path / "r.json"
+    code, err, _ = run([str(path), "-o", str(out), "--report", str(report), "-q"], capsys)
+    data = json.loads(report.read_text())["robust"]
+    assert code == 0
+    assert err == [f"h2o-solve: robust: dropped 5 of {data['weighed']} loop closures and fixes "
+                   "as outliers (listed in the report's robust.dropped_edges)"]
+    assert data["dropped_edges"] == np.flatnonzero(planted.outlier).tolist()
+    solved = read_g2o(out)
+    best = chi2(clean, *_exact(clean))
+    assert chi2(clean, solved.R, solved.t) == pytest.approx(best, rel=1e-6)
+    assert data["chi2_accepted"] == pytest.approx(best, rel=1e-6)
+    plain = tmp_path / "plain.json"
+    code, err, _ = run([str(path), "-o", str(tmp_path / "p.g2o"), "--robust", "off",
+                        "--report", str(plain), "-q"], capsys)
+    assert code == 0 and err == [] and json.loads(plain.read_text())["robust"] is None
+    bent = read_g2o(tmp_path / "p.g2o")
+    assert chi2(clean, bent.R, bent.t) > 10 * best
+
+
+def _exact(graph):
+    from h2o_slam.core.modes import solve_exact
+
+    result = solve_exact(graph)
+    return result.R, result.t
+
+
+def test_robust_gnc_needs_exact_mode(planar_file, tmp_path, capsys):
+    code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--mode", "offline",
+                        "--robust", "gnc"], capsys)
+    assert code == 2
+    assert err == ["h2o-solve: --robust gnc applies to --mode exact with --solver h2o only"]

@@ -1,0 +1,161 @@
+"""GNC-TLS robust exact solves: the weight function, weighted whitening, the innovation, and
+maps with planted false closures against the outlier-free map."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from h2o_slam.core.edges import EdgeTable
+from h2o_slam.core.geometry import PLANAR_DOF
+from h2o_slam.core.graph import chi2
+from h2o_slam.core.modes import build_solver, solve_exact
+from h2o_slam.core.robust import (
+    EdgeState,
+    RobustConfig,
+    converge_robust,
+    edge_states,
+    initial_mu,
+    innovation_chi2,
+    odometry_edges,
+    solver_residuals,
+    thresholds,
+    tls_weights,
+)
+from h2o_slam.core.exact import converge_exact
+from h2o_slam.io.outliers import OUTLIER_KINDS, plant_outliers
+from h2o_slam.io.synthetic import manhattan
+
+squares = st.floats(0.0, 1e6, allow_nan=False)
+mus = st.floats(1e-4, 1e4, allow_nan=False)
+
+
+@given(squares, squares, mus)
+def test_tls_weights_are_in_unit_interval_and_fall_with_the_residual(r1, r2, mu):
+    w = tls_weights(np.array([min(r1, r2), max(r1, r2)]), mu, np.full(2, 10.0))
+    assert np.all((w >= 0.0) & (w <= 1.0))
+    assert w[0] >= w[1]
+
+
+@given(mus)
+def test_tls_weights_are_continuous_at_both_bounds(mu):
+    c2 = 7.0
+    lo, hi = mu / (mu + 1.0) * c2, (mu + 1.0) / mu * c2
+    r2 = np.array([lo * (1 - 1e-10), lo * (1 + 1e-10), hi * (1 - 1e-10), hi * (1 + 1e-10)])
+    w = tls_weights(r2, mu, np.full(4, c2))
+    np.testing.assert_allclose(w, [1.0, 1.0, 0.0, 0.0], atol=1e-5)
+
+
+@given(st.floats(1.0, 1e8, allow_nan=False), st.floats(0.1, 100.0))
+def test_initial_mu_keeps_the_largest_residual_weighed(r2_max, c2):
+    if r2_max <= c2:
+        r2_max = 2.0 * c2
+    mu = initial_mu(r2_max, c2)
+    assert tls_weights(np.array([r2_max * (1 - 1e-9)]), mu, np.array([c2]))[0] > 0.0
+
+
+def test_a_weight_scales_the_information_the_whitening_stands_for():
+    table = EdgeTable(3)
+    info = np.diag([4.0, 9.0, 1.0, 1.0, 1.0, 16.0])
+    for _ in range(3):
+        table.append(0, 0, 1, np.eye(3), np.zeros(3), info, PLANAR_DOF)
+    table.set_weights(np.array([0, 2]), np.array([0.25, 0.0]))
+    S = info[np.ix_(PLANAR_DOF, PLANAR_DOF)]
+    for e, w in enumerate([0.25, 1.0, 0.0]):
+        np.testing.assert_allclose(table.W[e].T @ table.W[e], w * S, atol=1e-12)
+
+
+def test_thresholds_follow_each_edges_degrees_of_freedom():
+    kind = np.array([0, 1])
+    planar = thresholds(kind, True, 0.99)
+    spatial = thresholds(kind, False, 0.99)
+    np.testing.assert_allclose(planar, [11.345, 9.210], rtol=1e-3)
+    np.testing.assert_allclose(spatial, [16.812, 11.345], rtol=1e-3)
+
+
+def test_edge_states_name_each_weight():
+    states = edge_states(np.array([1.0, 1.0, 0.5, 0.0]), np.array([True, False, False, False]))
+    assert states.tolist() == [EdgeState.TRUSTED, EdgeState.ACCEPTED, EdgeState.DOWNWEIGHTED,
+                               EdgeState.DROPPED]
+
+
+@pytest.fixture(scope="module")
+def world():
+    """A small planar Manhattan graph (300 poses, ~110 true closures) and its optimum."""
+    graph = manhattan(300, seed=4).graph
+    return graph, solve_exact(graph)
+
+
+def test_without_outliers_the_robust_answer_is_the_optimum(world):
+    graph, optimum = world
+    result = solve_exact(graph, robust=RobustConfig())
+    assert result.weights is not None and np.all(result.weights == 1.0)
+    np.testing.assert_allclose(result.t, optimum.t, atol=1e-7)
+    assert chi2(graph, result.R, result.t) <= chi2(graph, optimum.R, optimum.t) * (1 + 1e-9)
+
+
+@pytest.mark.parametrize("kind", OUTLIER_KINDS)
+def test_each_outlier_kind_leaves_the_outlier_free_map(world, kind):
+    graph, optimum = world
+    planted = plant_outliers(graph, kind, 10, seed=2)
+    result = solve_exact(planted.graph, robust=RobustConfig())
+    assert result.weights is not None
+    assert np.all(result.weights[planted.outlier] == 0.0)  # every false closure dropped
+    assert np.all(result.weights[~planted.outlier] == 1.0)  # no true one turned away
+    np.testing.assert_allclose(result.t, optimum.t, atol=1e-6)
+
+
+def test_least_squares_is_bent_by_the_same_outliers(world):
+    """The planted closures are outliers that matter: without the robust solve they move
+    the map by metres (the test above could not pass by accident)."""
+    graph, optimum = world
+    planted = plant_outliers(graph, "random", 10, seed=2)
+    plain = solve_exact(planted.graph)
+    assert np.max(np.abs(plain.t - optimum.t)) > 0.5
+
+
+def test_a_group_that_agrees_with_itself_but_not_with_the_rest_is_dropped(world):
+    graph, optimum = world
+    planted = plant_outliers(graph, "local_grouped", 10, seed=5)  # one group of ten
+    meas = planted.graph.meas_t[planted.outlier]
+    assert np.all(meas == meas[0])  # one false measurement, mutually consistent
+    result = solve_exact(planted.graph, robust=RobustConfig())
+    assert result.weights is not None
+    assert np.all(result.weights[planted.outlier] == 0.0)
+    np.testing.assert_allclose(result.t, optimum.t, atol=1e-6)
+
+
+def test_a_dropped_true_closure_is_readmitted(world):
+    """Started with a true closure already dropped (as a graduation that passed through a
+    bent map leaves it), the solve takes it back: decisions are revised."""
+    graph, optimum = world
+    trusted = odometry_edges(graph.kind, graph.a, graph.b)
+    closure = int(np.flatnonzero(~trusted)[0])
+    solver, _ = build_solver(graph, init="tree", regularizer=False, trusted=trusted)
+    weights = np.ones(graph.num_edges)
+    weights[closure] = 0.0
+    outcome = converge_robust(solver, 100, trusted, RobustConfig(), weights=weights)
+    assert outcome.weights[closure] == 1.0
+    np.testing.assert_allclose(solver.world_poses()[1], optimum.t, atol=1e-6)
+
+
+def test_innovation_is_what_adding_the_edge_costs(world):
+    """The innovation χ² of an edge left out equals the rise of the optimal χ² when it is
+    put back (exactly for a linear problem; to first order here, with small residuals)."""
+    graph, _ = world
+    trusted = odometry_edges(graph.kind, graph.a, graph.b)
+    closure = int(np.flatnonzero(~trusted)[3])
+    solver, _ = build_solver(graph, init="tree", regularizer=False)
+    weights = np.ones(graph.num_edges)
+    weights[closure] = 0.0
+    solver.set_weights(weights)
+    without = converge_exact(solver, 100)[0][-1]
+    innovation = float(innovation_chi2(solver, np.array([closure]))[0])
+    plain = float(solver_residuals(solver)[closure])
+    weights[closure] = 1.0
+    solver.set_weights(weights)
+    with_edge = converge_exact(solver, 100)[0][-1]
+    assert innovation < plain  # the map's own uncertainty widens the test
+    np.testing.assert_allclose(with_edge - without, innovation, rtol=0.05)
