@@ -9,6 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from h2o_slam.core.edges import EdgeTable
+from h2o_slam.core.exact import converge_exact
 from h2o_slam.core.geometry import PLANAR_DOF
 from h2o_slam.core.graph import chi2
 from h2o_slam.core.modes import build_solver, solve_exact
@@ -24,7 +25,6 @@ from h2o_slam.core.robust import (
     thresholds,
     tls_weights,
 )
-from h2o_slam.core.exact import converge_exact
 from h2o_slam.io.outliers import OUTLIER_KINDS, plant_outliers
 from h2o_slam.io.synthetic import manhattan
 
