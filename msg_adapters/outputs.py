@@ -122,7 +122,7 @@ def map_to_odom(
 # ---------------------------------------------------------------------------- markers
 
 #: Marker namespaces of :func:`fill_graph_markers`.
-NS_NODES, NS_EDGES, NS_GPS = "nodes", "edges", "gps"
+NS_NODES, NS_EDGES, NS_GPS, NS_DROPPED = "nodes", "edges", "gps", "dropped"
 _ADD, _DELETEALL = 0, 3
 _SPHERE_LIST, _LINE_LIST = 7, 5
 
@@ -155,6 +155,9 @@ class GraphMarkers:
         gps_nodes: node index of each GPS edge ``(k,)``.
         gps_positions: measured ENU position of each GPS edge ``(k, 3)``.
         gps_residuals: χ² of each GPS edge ``(k,)``.
+        edge_dropped, gps_dropped: which edges the robust back end holds out as outliers
+            (bool ``(m,)`` and ``(k,)``; default none): drawn in their own namespace
+            ``dropped`` and colour instead of by χ².
     """
 
     positions: Any
@@ -163,6 +166,22 @@ class GraphMarkers:
     gps_nodes: Any = field(default_factory=lambda: np.zeros(0, dtype=int))
     gps_positions: Any = field(default_factory=lambda: np.zeros((0, 3)))
     gps_residuals: Any = field(default_factory=lambda: np.zeros(0))
+    edge_dropped: Any = None
+    gps_dropped: Any = None
+
+
+#: Colour (r, g, b, a) of edges held out as outliers: orange, half transparent.
+DROPPED_COLOR = (1.0, 0.55, 0.0, 0.6)
+
+
+def _dropped(values: Any, count: int, what: str) -> Any:
+    """A bool mask of ``count`` entries (``None``: none dropped)."""
+    if values is None:
+        return np.zeros(count, dtype=bool)
+    mask = np.asarray(values)
+    if mask.shape != (count,) or mask.dtype != bool:
+        raise AdapterError(f"{what}: expected {count} booleans, got {mask.dtype} {mask.shape}")
+    return mask
 
 
 def _indices(values: Any, n: int, pairs: bool, what: str) -> Any:
@@ -189,8 +208,9 @@ def fill_graph_markers(
     clear: bool = False,
 ) -> Any:
     """``visualization_msgs/MarkerArray`` of the graph: namespace ``nodes`` (one sphere
-    list), ``edges`` (a line list coloured by χ², green → red) and ``gps`` (lines from
-    each node to its GPS measurement, cyan → magenta). With ``clear``, a ``DELETEALL``
+    list), ``edges`` (a line list coloured by χ², green → red), ``gps`` (lines from
+    each node to its GPS measurement, cyan → magenta) and ``dropped`` (loop closures and
+    fixes held out as outliers, :data:`DROPPED_COLOR`). With ``clear``, a ``DELETEALL``
     marker comes first (after a reset)."""
     msg = new_message(msg_or_cls)
     pos = finite_array(graph.positions, "graph positions")
@@ -209,6 +229,8 @@ def fill_graph_markers(
             f"gps markers: {len(gps_nodes)} nodes, {len(gps_pos)} positions, "
             f"{len(gps_res)} residuals"
         )
+    edge_out = _dropped(graph.edge_dropped, len(edges), "edges dropped")
+    gps_out = _dropped(graph.gps_dropped, len(gps_nodes), "gps dropped")
     marker_cls = element_class(msg, "markers")
     proto = marker_cls()
     point_cls = element_class(proto, "points")
@@ -244,14 +266,21 @@ def fill_graph_markers(
     nodes.points = [point(p) for p in pos]
     markers.append(nodes)
     for ns, starts, ends, res, gps in (
-        (NS_EDGES, pos[edges[:, 0]], pos[edges[:, 1]], edge_res, False),
-        (NS_GPS, pos[gps_nodes], gps_pos, gps_res, True),
+        (NS_EDGES, pos[edges[~edge_out, 0]], pos[edges[~edge_out, 1]], edge_res[~edge_out],
+         False),
+        (NS_GPS, pos[gps_nodes[~gps_out]], gps_pos[~gps_out], gps_res[~gps_out], True),
     ):
         lines = marker(ns, _LINE_LIST, line_width_m)
         cols = residual_colors(res, residual_scale, gps=gps)
         lines.points = [point(p) for pair in zip(starts, ends, strict=True) for p in pair]
         lines.colors = [color(c) for c in cols for _ in range(2)]
         markers.append(lines)
+    dropped = marker(NS_DROPPED, _LINE_LIST, line_width_m)
+    dropped.color.r, dropped.color.g, dropped.color.b, dropped.color.a = DROPPED_COLOR
+    starts = np.concatenate([pos[edges[edge_out, 0]], pos[gps_nodes[gps_out]]])
+    ends = np.concatenate([pos[edges[edge_out, 1]], gps_pos[gps_out]])
+    dropped.points = [point(p) for pair in zip(starts, ends, strict=True) for p in pair]
+    markers.append(dropped)
     msg.markers = markers
     return msg
 

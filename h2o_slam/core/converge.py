@@ -47,6 +47,7 @@ from h2o_slam.core import geometry as geo
 from h2o_slam.core.exact import converge_exact
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH
+from h2o_slam.core.robust import RobustConfig, converge_robust, odometry_edges
 from h2o_slam.core.solver import H2OSolver, SolverConfig
 from h2o_slam.core.timing import CostModel
 from h2o_slam.core.tree import PoseTree
@@ -88,6 +89,8 @@ class Solution:
         iterations: Gauss–Newton iterations taken.
         converged: χ² stopped falling (relative tolerance), not an iteration cap.
         error: why the solve failed (empty when it did not).
+        weights: robust solves: the weight of each of the snapshot's edges (0: dropped as an
+            outlier); ``None`` otherwise.
     """
 
     nodes: int
@@ -100,18 +103,23 @@ class Solution:
     iterations: int
     converged: bool
     error: str = ""
+    weights: Array | None = None
 
 
 class ExactProblem:
     """A copy of the edges and solves of tree snapshots: the side that runs beside the
     callbacks (in a worker process, or inline)."""
 
-    def __init__(self, planar: bool, config: SolverConfig | None = None) -> None:
+    def __init__(self, planar: bool, config: SolverConfig | None = None,
+                 robust: RobustConfig | None = None) -> None:
         self.solver = H2OSolver(planar, config)
+        self.robust = robust
         # The last solution: the next solve starts from it (Gauss–Newton carried on, as
         # iSAM2 carries its linearization point), not from the live map, which the
         # single-edge updates have moved meanwhile.
         self._last: tuple[int, Array, Array] | None = None
+        #: Robust solves: the last solution's decisions, carried on by the next solve.
+        self._weights: Array | None = None
 
     def add_edges(self, rows: EdgeRows) -> None:
         """Extend the copy by edges ``rows.first …`` (ones it already holds are skipped)."""
@@ -130,7 +138,7 @@ class ExactProblem:
         solver._edges.m = edges  # the copy may already hold edges newer than the snapshot
         try:
             solver.tree = self._seed(parent, R, t, generation)
-            history, converged = converge_exact(solver, iterations)
+            history, converged, weights = self._converge(iterations)
             R_w, t_w = solver.world_poses()
         except Exception as exc:  # noqa: BLE001 - reported to the live side, which goes on
             self._last = None
@@ -140,7 +148,22 @@ class ExactProblem:
             solver._edges.m = full
         self._last = (generation, R_w, t_w)
         return Solution(n, edges, generation, R_w, t_w, history[0], history[-1],
-                        len(history) - 1, converged)
+                        len(history) - 1, converged, weights=weights)
+
+    def _converge(self, iterations: int) -> tuple[list[float], bool, Array | None]:
+        """Gauss–Newton, or the robust solve carried on from the last decisions."""
+        solver = self.solver
+        if self.robust is None:
+            return (*converge_exact(solver, iterations), None)
+        m = solver.num_edges
+        start = np.full(m, np.nan)
+        if self._weights is not None:
+            k = min(m, len(self._weights))
+            start[:k] = self._weights[:k]
+        trusted = odometry_edges(solver.kind, solver.a, solver.b)
+        outcome = converge_robust(solver, iterations, trusted, self.robust, weights=start)
+        self._weights = outcome.weights.copy()
+        return outcome.history, outcome.converged, outcome.weights
 
 
     def _seed(self, parent: np.ndarray, R: Array, t: Array, generation: int) -> PoseTree:
@@ -188,6 +211,7 @@ def _layout(capacity: int, edge_capacity: int, p: int) -> dict[str, tuple[tuple[
         "kind": ((edge_capacity,), np.int64), "a": ((edge_capacity,), np.int64),
         "b": ((edge_capacity,), np.int64), "meas_R": ((edge_capacity, 3, 3), np.float64),
         "meas_t": ((edge_capacity, 3), np.float64), "info": ((edge_capacity, p, p), np.float64),
+        "w_out": ((edge_capacity,), np.float64),
     }
 
 
@@ -205,10 +229,10 @@ def _worker_main(conn: Connection, reply: Connection) -> None:
     except OSError:
         pass
     try:
-        planar, config = conn.recv()
+        planar, config, robust = conn.recv()
     except (EOFError, OSError):
         return
-    problem = ExactProblem(planar, config)
+    problem = ExactProblem(planar, config, robust)
     shared: SharedArrays | None = None
     while True:
         try:
@@ -226,7 +250,10 @@ def _worker_main(conn: Connection, reply: Connection) -> None:
         if not sol.error:
             shared["R_out"][:n] = sol.R
             shared["t_out"][:n] = sol.t
+            if sol.weights is not None:
+                shared["w_out"][:edges] = sol.weights
         sol.R, sol.t = np.zeros((0, 3, 3)), np.zeros((0, 3))  # sent through the arrays
+        sol.weights = None if sol.weights is None else np.zeros(0)
         try:
             reply.send(sol)
         except (EOFError, OSError):
@@ -241,7 +268,8 @@ class WorkerProcess:
     #: into a larger one (page faults on a fresh file: about 1 ms per 10k nodes).
     FIRST_CAPACITY = 1 << 16
 
-    def __init__(self, planar: bool, config: SolverConfig | None, info_dim: int) -> None:
+    def __init__(self, planar: bool, config: SolverConfig | None, info_dim: int,
+                 robust: RobustConfig | None = None) -> None:
         self._info_dim = info_dim
         # A fresh interpreter running this module: forking a process that holds DDS threads
         # is unsafe, and multiprocessing's spawn would re-run the user's main script.
@@ -258,7 +286,7 @@ class WorkerProcess:
         os.close(child_out)
         self._conn = Connection(to_child, readable=False)
         self._reply = Connection(to_parent, writable=False)
-        self._conn.send((planar, config))
+        self._conn.send((planar, config, robust))
         self._shape = (0, 0, info_dim)
         self._dir = Path(tempfile.mkdtemp(prefix="h2o-exact-", dir=_shm_dir()))
         self._finalizer = weakref.finalize(self, _shutdown, self._conn, self._reply,
@@ -390,7 +418,8 @@ class Converger:
     module docstring. :meth:`work` is called from every step with that step's deadline."""
 
     def __init__(self, solver: H2OSolver, background: str = "inline",
-                 iterations: int = 50, growth: float = 0.5) -> None:
+                 iterations: int = 50, growth: float = 0.5,
+                 robust: RobustConfig | None = None) -> None:
         if background not in BACKGROUNDS:
             raise ValueError(
                 f"unknown background {background!r}; choose one of {', '.join(BACKGROUNDS)}")
@@ -398,15 +427,17 @@ class Converger:
         self.background = background
         self.iterations = iterations
         self.growth = growth
+        self.robust = robust
         self.job_iterations = 5
         self.state = ConvergeState()
         #: Bumped when the live side moves whole subtrees (a join, a GPS alignment): a
         #: solution of an older snapshot would undo the move and is dropped.
         self.generation = 0
-        self._inline = ExactProblem(solver.planar, solver.config)
+        self._inline = ExactProblem(solver.planar, solver.config, robust)
         self._worker: WorkerProcess | None = None
         if background == "process":
-            self._worker = WorkerProcess(solver.planar, solver.config, solver.info.shape[-1])
+            self._worker = WorkerProcess(solver.planar, solver.config, solver.info.shape[-1],
+                                         robust)
         self._sent = 0  # edges the worker holds
         self._written = 0  # edges written to the worker's shared file
         self._failed_at = -1  # edges when the last solve failed: retried once more arrive
@@ -546,11 +577,13 @@ class Converger:
             # Views: no new snapshot is written until this one is merged.
             sol.R = self._worker.shared["R_out"][: sol.nodes]
             sol.t = self._worker.shared["t_out"][: sol.nodes]
+            if sol.weights is not None:
+                sol.weights = self._worker.shared["w_out"][: sol.edges].copy()
         elif not self._worker.alive:
             # Started again; the new worker holds no edges yet.
             self._worker.close()
             self._worker = WorkerProcess(self.solver.planar, self.solver.config,
-                                         self.solver.info.shape[-1])
+                                         self.solver.info.shape[-1], self.robust)
             self._sent = self._written = 0
         self._received(sol)
 

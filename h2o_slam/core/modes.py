@@ -463,14 +463,17 @@ def arrivals(graph: PoseGraph) -> list[np.ndarray]:
     return [order[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
-def add_arrival(h2o: OnlineH2O, graph: PoseGraph, node: int, edges: np.ndarray) -> None:
-    """Add pose ``node`` of ``graph`` and its edges (relative ones first) to ``h2o``.
+def add_arrival(h2o: OnlineH2O, graph: PoseGraph, node: int, edges: np.ndarray) -> list[int]:
+    """Add pose ``node`` of ``graph`` and its edges (relative ones first) to ``h2o``; returns
+    the graph's edges in the order they were added.
 
     A pose with no relative edge to an earlier pose starts a new subtree at its estimate.
     """
     rel = [int(e) for e in edges if graph.kind[e] == EdgeKind.RELATIVE]
     if not rel:
         h2o.add_pose(graph.R[node], graph.t[node])
-    for e in rel + [int(e) for e in edges if graph.kind[e] != EdgeKind.RELATIVE]:
+    added = rel + [int(e) for e in edges if graph.kind[e] != EdgeKind.RELATIVE]
+    for e in added:
         h2o.add_edge(int(graph.kind[e]), int(graph.a[e]), int(graph.b[e]),
                      graph.meas_R[e], graph.meas_t[e], graph.info[e])
+    return added

@@ -26,15 +26,17 @@ from __future__ import annotations
 import gc
 import math
 import time
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.converge import BACKGROUNDS, Converger, Solution
+from h2o_slam.core.errors import GraphError
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH, EdgeKind
+from h2o_slam.core.robust import RobustConfig
 from h2o_slam.core.solver import H2OSolver, SolverConfig
 from h2o_slam.core.timing import CostModel, UpdateCost
 
@@ -75,6 +77,10 @@ class OnlineConfig:
         unlimited_s: a budget this long or longer means no budget: nothing a robot runs
             per callback takes a second, and such a budget asks for the full solution, not
             for the step to spin through it.
+        robust: the exact solves weigh loop closures and GPS fixes as possible outliers
+            (:mod:`h2o_slam.core.robust`; odometry trusted) and each merged solution sets
+            every edge's weight, so a decision is revised by every solve; ``None``: least
+            squares.
     """
 
     d_max: int | None = None
@@ -93,6 +99,7 @@ class OnlineConfig:
     exact_iterations: int = 50
     exact_growth: float = 0.5
     unlimited_s: float = 1.0
+    robust: RobustConfig | None = None
 
     def __post_init__(self) -> None:
         if self.d_max is not None and self.d_max < 1:
@@ -182,7 +189,11 @@ class OnlineH2O:
         self._late_q = 0.0
         self._late_s = 0.0
         self.converger = Converger(self.solver, self.online.background,
-                                   self.online.exact_iterations, self.online.exact_growth)
+                                   self.online.exact_iterations, self.online.exact_growth,
+                                   self.online.robust)
+        #: Robust decisions the merged solutions changed: ``dropped`` (an accepted edge
+        #: now out) and ``readmitted`` (an edge held or dropped now in).
+        self.decisions: Counter[str] = Counter()
         self._arrived = False  # an edge or pose arrived since the last step
 
     def close(self) -> None:
@@ -517,11 +528,51 @@ class OnlineH2O:
         return merged
 
     def _after_merge(self, sol: Solution) -> None:
-        """Edges in a merged solution are solved: none of them waits any longer."""
+        """Edges in a merged solution are solved: none of them waits any longer. A robust
+        solution also sets their weights; the edges whose weight changed have stale
+        contributions to ``B``."""
         solved = sol.edges
         self.pending = deque(e for e in self.pending if e >= solved)
         for edge in [e for e in self.waiting if e < solved]:
             del self.waiting[edge]
+        if sol.weights is not None:
+            old = self.solver.weight[:solved] > 0.5
+            new = sol.weights[:solved] > 0.5
+            self.decisions["dropped"] += int(np.count_nonzero(old & ~new))
+            self.decisions["readmitted"] += int(np.count_nonzero(~old & new))
+            changed = np.flatnonzero(self.solver.weight[:solved] != sol.weights[:solved])
+            self.solver.set_weights(sol.weights[:solved], np.arange(solved))
+            for edge in changed.tolist():
+                self._stale[edge] = None
+
+    def restore_weights(self, weights: Array) -> None:
+        """Set every edge's robust weight (a saved map's decisions) before any solve; the
+        edges at weight 0 leave the budgeted updates' queue."""
+        self.solver.set_weights(np.asarray(weights, dtype=float))
+        out = set(np.flatnonzero(self.solver.weight <= 0.0).tolist())
+        self.pending = deque(e for e in self.pending if e not in out)
+        for edge in out:
+            self._stale[edge] = None
+
+    def gps_aligned(self, node: int) -> bool:
+        """The node's subtree has been placed in the world by its GPS fixes."""
+        return self._top(node) in self._aligned
+
+    def add_held_edge(
+        self, kind: int, a: int, b: int, meas_R: Array, meas_t: Array, info: Array
+    ) -> int:
+        """Add an edge at weight 0 between existing nodes: in the graph, never relaxed by
+        the budgeted updates, weighed again by every robust exact solve (a closure a cheap
+        first filter doubts, kept so that it can be re-admitted)."""
+        n = self.solver.num_nodes
+        if not (a == EARTH or 0 <= a < n) or not 0 <= b < n:
+            raise GraphError(f"held edge ({a}, {b}) must join existing nodes")
+        self._arrived = True
+        edge = self.solver.add_edge(kind, a, b, meas_R, meas_t, info, contribute=False)
+        self.solver.set_weights(np.zeros(1), np.array([edge]))
+        self._grow_priority()
+        self._priority[edge] = 0.0
+        return edge
 
     def _track_lateness(self, late_s: float, budget_s: float) -> None:
         """Follow the 99.5th percentile of how far steps end past the deadline they worked

@@ -163,22 +163,74 @@ def converge_robust(
     """GNC-TLS over the solver's edges (module docstring), then Gauss–Newton to convergence
     with the final 0/1 weights.
 
-    ``trusted``: edges whose weight stays 1 (odometry). ``weights``: a start (a previous
-    solution's, for a solve carried on); ``None`` starts from least squares (all 1).
-    ``restart``: world poses ``(R, t)`` to start a solve with given weights from (LAGO of
-    the weighted graph, for planar graphs), tried when a warm-started re-admission fails.
+    ``trusted``: edges whose weight stays 1 (odometry). ``weights``: a previous solution's
+    decisions (0 or 1, NaN for edges it did not hold), for a solve carried on
+    (:func:`carry_on`); ``None`` graduates from least squares (all 1). ``restart``: world
+    poses ``(R, t)`` to start a solve with given weights from (LAGO of the weighted graph,
+    for planar graphs), tried when a warm-started re-admission fails.
     """
     cfg = config or RobustConfig()
     c2 = thresholds(solver.kind, solver.planar, cfg.inlier_probability)
-    w = np.ones(solver.num_edges) if weights is None else np.asarray(weights, float).copy()
-    w[trusted] = 1.0
+    if weights is None:
+        return _graduate(solver, iterations, ~trusted, c2, cfg, restart)
+    seed = (solver.tree.R.copy(), solver.tree.t.copy())
+    outcome, doubt = carry_on(solver, iterations, trusted, c2, weights, restart)
+    if outcome is not None and not doubt:
+        return outcome
+    # A new edge refused, or an accepted one contradicted: the earlier decisions may be
+    # what is wrong (a false closure accepted while its loop was open), so graduate from
+    # the seed as well and keep the answer of lower TLS cost.
+    kept = None
+    if outcome is not None:
+        kept = (tls_cost(solver_residuals(solver), ~trusted, c2), solver.tree.R.copy(),
+                solver.tree.t.copy(), outcome)
+    solver.tree.R[:], solver.tree.t[:] = seed
+    graduated = _graduate(solver, iterations, ~trusted, c2, cfg, restart)
+    if kept is None or tls_cost(solver_residuals(solver), ~trusted, c2) < kept[0]:
+        return graduated
+    solver.tree.R[:], solver.tree.t[:] = kept[1], kept[2]
+    solver.set_weights(kept[3].weights)
+    return kept[3]
+
+
+def carry_on(solver: H2OSolver, iterations: int, trusted: np.ndarray, c2: Array,
+             weights: Array, restart: Restart | None) -> tuple[RobustOutcome | None, bool]:
+    """The online solve: keep the previous decisions, admit each new edge whose innovation
+    against the map without it is within ``c̄²`` (so the first closure of a long loop is
+    weighed by the map's uncertainty along the loop, not by its own covariance alone),
+    and settle. Returns the outcome (``None`` when an accepted edge is contradicted, its
+    residual above ``c̄²``) and whether a new edge was refused."""
+    free = ~trusted
+    w = np.asarray(weights, dtype=float).copy()
+    new = np.flatnonzero(free & np.isnan(w))
+    w[np.isnan(w) | trusted] = 1.0
+    w[new] = 0.0
+    solver.set_weights(w)
+    history, converged = converge_exact(solver, iterations)
+    admitted = new
+    if len(new):
+        admitted = new[innovation_chi2(solver, new) <= c2[new]]
+        if len(admitted):
+            w[admitted] = 1.0
+            solver.set_weights(w)
+            more, converged = converge_exact(solver, iterations)
+            history.extend(more[1:])
+    doubt = len(admitted) < len(new)
+    if np.any(free & (w > 0.5) & (solver_residuals(solver) > c2)):
+        return None, doubt
+    converged = _settle(solver, w, free, c2, iterations, history, restart)
+    return RobustOutcome(w, history, 0, converged), doubt
+
+
+def _graduate(solver: H2OSolver, iterations: int, free: np.ndarray, c2: Array,
+              cfg: RobustConfig, restart: Restart | None) -> RobustOutcome:
+    """GNC from least squares over every edge, then :func:`_settle`."""
+    w = np.ones(solver.num_edges)
     solver.set_weights(w)
     history, converged = converge_exact(solver, iterations)
     r2 = solver_residuals(solver)
-    free = ~trusted
-    excess = np.where(free, r2 / c2, 0.0)
     steps = 0
-    if excess.max(initial=0.0) > 1.0 or np.any(w[free] < 1.0):
+    if np.any(free & (r2 > c2)):
         mu = initial_mu(float(np.max(r2[free] / c2[free])), 1.0)
         for steps in range(1, cfg.max_steps + 1):  # noqa: B007 - the count is reported
             w[free] = tls_weights(r2[free], mu, c2[free])
@@ -189,6 +241,10 @@ def converge_robust(
             if _binary(w[free]) and mu > 1e3:
                 break
             mu *= cfg.mu_factor
+    # Least squares can also absorb an outlier among many inliers: its residual spread
+    # below c̄² while the TLS cost without it is a fifth (measured on a revisit: 135
+    # against 26), so edges under strain are tried out even when none exceeds c̄².
+    if steps or np.any(free & (r2 > STRAIN * c2)):
         converged = _settle(solver, w, free, c2, iterations, history, restart)
     return RobustOutcome(w, history, steps, converged)
 
@@ -207,15 +263,28 @@ def _settle(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, iterations
     is 304."""
     converged = _tls_rounds(solver, w, free, c2, iterations, history)
     for _ in range(rounds):
-        out = np.flatnonzero(free & (w < 0.5))
-        if not len(out):
-            break
-        ratio = innovation_chi2(solver, out) / c2[out]
         moved = False
-        for group in _clusters(solver.a[out], solver.b[out], ratio)[:MAX_TRIES]:
-            kept, converged = _try_move(solver, w, free, c2, out[group], 1.0, iterations,
-                                        history, converged, restart)
-            moved |= kept
+        out = np.flatnonzero(free & (w < 0.5))
+        if len(out):
+            ratio = innovation_chi2(solver, out) / c2[out]
+            # The plausible members of each place: a false closure dropped beside true
+            # ones of the same revisit stays out when they come back.
+            groups = [g[ratio[g] <= READMIT]
+                      for g in _clusters(solver.a[out], solver.b[out], ratio)
+                      if ratio[g].min() <= READMIT]
+            tries = 0
+            for group in groups:
+                # The place together, else its members one by one, most plausible first.
+                for part in [group] + ([group[[i]] for i in np.argsort(ratio[group])]
+                                       if len(group) > 1 else []):
+                    if tries == MAX_TRIES:
+                        break
+                    tries += 1
+                    kept, converged = _try_move(solver, w, free, c2, out[part], 1.0,
+                                                iterations, history, converged, restart)
+                    moved |= kept
+                    if kept:
+                        break
         if not (moved or _drop_strained(solver, w, free, c2, iterations, history, restart)):
             break
     return converged
@@ -234,9 +303,13 @@ def _drop_strained(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, ite
     if not strained.any():
         return False
     inside, ratio = inside[strained], ratio[strained]
-    groups = _clusters(solver.a[inside], solver.b[inside], -ratio)[:MAX_TRIES]
+    # Single closures first, the most strained first (a false closure among true ones of
+    # the same revisit shares their place, so its cluster would take them out with it),
+    # then whole places (a group of false closures that agree with each other).
+    singles = [np.array([i]) for i in np.argsort(-ratio)[:MAX_TRIES]]
+    groups = [g for g in _clusters(solver.a[inside], solver.b[inside], -ratio) if len(g) > 1]
     moved = False
-    for group in groups:
+    for group in singles + groups[:MAX_TRIES]:
         kept, _ = _try_move(solver, w, free, c2, inside[group], 0.0, iterations, history,
                             False, restart)
         moved |= kept
@@ -247,6 +320,9 @@ def _drop_strained(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, ite
 STRAIN = 0.25
 
 
+#: Clusters are tried again when one of their closures has an innovation within this many
+#: times ``c̄²`` (a false closure of the benchmark's kind is at 20-130 times).
+READMIT = 4.0
 #: Re-admission attempts per round (the most plausible clusters first).
 MAX_TRIES = 8
 #: Closures whose ends are both within this many poses of another's are one cluster.
@@ -284,7 +360,8 @@ def _try_move(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, edges: n
         w[edges] = weight
         solver.set_weights(w)
         now = _tls_rounds(solver, w, free, c2, iterations, history, solve_first=True)
-        if tls_cost(solver_residuals(solver), free, c2) < cost * (1.0 - 1e-9):
+        if tls_cost(solver_residuals(solver), free, c2) < cost * (1.0 - 1e-9) and (
+                weight > 0.0 or _significant(solver, edges, c2)):
             return True, now
         solver.tree.R[:], solver.tree.t[:], w[:] = saved[0], saved[1], saved[2]
         del history[saved[3]:]
@@ -292,6 +369,19 @@ def _try_move(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, edges: n
         if restart is None:
             break
     return False, converged
+
+
+def _significant(solver: H2OSolver, dropped: np.ndarray, c2: Array) -> bool:
+    """Every dropped edge contradicts the map built without it: its innovation (its own
+    covariance plus the map's uncertainty between its ends) is above :data:`SIGNIFICANT`
+    times ``c̄²``. A TLS cost that falls is not enough: on manhattan, without outliers,
+    dropping two true closures that hold a weakly tied stretch lowers it by 3.8 of 3549,
+    their innovations then 26.0 and 29.6 against a ``c̄²`` of 25.9."""
+    return bool(np.all(innovation_chi2(solver, dropped) > SIGNIFICANT * c2[dropped]))
+
+
+#: How far beyond ``c̄²`` a dropped edge's innovation must lie for a drop move to stand.
+SIGNIFICANT = 2.0
 
 
 def tls_cost(r2: Array, free: np.ndarray, c2: Array) -> float:

@@ -83,6 +83,9 @@ class SavedMap:
             (yaw unwrapped); the keyframes are among them.
         datum: GPS datum ``(lat_deg, lon_deg, alt_m)`` or ``None``.
         config: the mapper settings at the save (informative; not applied on load).
+        weights: each edge's robust weight, ``(M,)`` in [0, 1] (0: a loop closure or fix
+            held or dropped as an outlier); ``None``: all 1 (maps saved before robust
+            estimation).
     """
 
     graph: PoseGraph
@@ -93,6 +96,7 @@ class SavedMap:
     track_poses: Array
     datum: tuple[float, float, float] | None = None
     config: dict[str, Any] = field(default_factory=dict)
+    weights: Array | None = None
 
 
 @dataclass(frozen=True)
@@ -150,6 +154,8 @@ def save_map(path: PathLike, saved: SavedMap) -> Path:
         "track_stamps_ns": [int(s) for s in saved.track_stamps_ns],
         "track_poses": np.asarray(saved.track_poses, dtype=float).reshape(-1, 3).tolist(),
         "datum": None if saved.datum is None else [float(v) for v in saved.datum],
+        "edge_weights": None if saved.weights is None else
+        np.asarray(saved.weights, dtype=float).tolist(),
         # Informative only; JSON has no inf (an unbounded loop gate), so such values are
         # written as strings.
         "config": {k: repr(v) if isinstance(v, float) and not math.isfinite(v) else v
@@ -403,6 +409,7 @@ def _validated(g2o_path: Path, side_path: Path, meta: dict[str, Any]) -> SavedMa
                         "in track_stamps_ns")
     _check_keyframes_on_track(side, stamps, odom, track_stamps, track)
     datum = _datum(side)
+    weights = _weights(side, edges)
     config = side.get("config")
     if not isinstance(config, dict):
         raise side.fail("config", "not an object")
@@ -427,7 +434,20 @@ def _validated(g2o_path: Path, side_path: Path, meta: dict[str, Any]) -> SavedMa
     if hashlib.sha256(data).hexdigest() != digest:
         raise MapStoreError(g2o_path, "sha256", f"differs from g2o.sha256 in {side_path.name}: "
                             "the file changed after the save, or belongs to another save")
-    return SavedMap(graph, stamps, odom, chain_cov, track_stamps, track, datum, config)
+    return SavedMap(graph, stamps, odom, chain_cov, track_stamps, track, datum, config,
+                    weights)
+
+
+def _weights(side: _Sidecar, edges: int) -> Array | None:
+    """``edge_weights``: absent or null (a map saved before robust estimation), or one
+    weight in [0, 1] per edge."""
+    if side.meta.get("edge_weights") is None:
+        return None
+    weights = side.numbers("edge_weights", (edges,))
+    if np.any((weights < 0.0) | (weights > 1.0)):
+        raise side.fail("edge_weights", f"entry {int(np.argmax((weights < 0) | (weights > 1)))} "
+                        "is outside [0, 1]")
+    return weights
 
 
 def _check_positive_definite(side: _Sidecar, name: str, cov: Array, offset: int = 0) -> None:

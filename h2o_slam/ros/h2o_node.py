@@ -92,6 +92,9 @@ PARAMETERS: list[tuple[str, Any, str, tuple[float, float] | None]] = [
     ("loop_gate_chi2", 16.266,
      "Largest accepted loop-closure chi2 (3 dof; 16.27 is the 99.9 % quantile).",
      (0.1, 1e12)),
+    ("robust", True, "Weigh loop closures and GPS fixes as possible outliers (GNC-TLS in the "
+     "exact solves, every decision revised by each solve); a closure or fix the gate doubts "
+     "is held at weight 0 instead of refused. false: least squares, the gate refuses.", None),
     ("loop_stamp_tolerance", 0.5, "Seconds a loop-closure stamp may lie from a keyframe.",
      (0.0, 60.0)),
     ("loop_default_sigma_xy", 0.1, "Loop closure sigma (m) when its covariance is all zero.",
@@ -211,6 +214,7 @@ class H2ONode(Node):
             loop_stamp_tolerance_s=float(self.p("loop_stamp_tolerance")),
             gps_time_tolerance_s=float(self.p("gps_time_tolerance")),
             gps_lever_arm_m=(lever[0], lever[1]),
+            robust=bool(self.p("robust")),
             budget_ms=float(self.p("budget_ms")) or None,
             d_max=d_max if d_max > 0 else None,
             # Budgeted callbacks get a worker process for the exact solves; unbudgeted
@@ -559,10 +563,12 @@ class H2ONode(Node):
         chi2 = edge_chi2(graph)
         rel = graph.kind == EdgeKind.RELATIVE
         gps = graph.kind == EdgeKind.POSITION
+        out = self.mapper.h2o.solver.weight <= 0.0
         markers = ma.GraphMarkers(
             positions=graph.t, edges=np.column_stack([graph.a[rel], graph.b[rel]]),
             edge_residuals=chi2[rel], gps_nodes=graph.b[gps],
-            gps_positions=graph.meas_t[gps], gps_residuals=chi2[gps])
+            gps_positions=graph.meas_t[gps], gps_residuals=chi2[gps],
+            edge_dropped=out[rel], gps_dropped=out[gps])
         self.emit("markers", ma.fill_graph_markers(MarkerArray, markers, stamp_ns=stamp,
                                                    frame_id=frame, residual_scale=3.0))
 
@@ -572,8 +578,7 @@ class H2ONode(Node):
         ``refresh``; ``chi2_age_s`` says how old they are."""
         now = time.perf_counter()
         if refresh or self._chi2_cache is None:
-            graph = self.mapper.graph()
-            per_edge = edge_chi2(graph) if graph.num_edges else np.zeros(0)
+            per_edge = self.mapper.edge_chi2()
             ratio, outside = self.mapper.optimality(per_edge)
             self._chi2_cache = {"chi2": float(np.sum(per_edge)), "optimality_ratio": ratio,
                                 "edges_outside_converged": outside}
@@ -620,6 +625,7 @@ class H2ONode(Node):
             f"{self._datum.lat_deg:.8f}, {self._datum.lon_deg:.8f}",
         }
         values.update({f"accepted {k}": v for k, v in sorted(self.mapper.accepted.items())})
+        values.update({f"robust {k}": v for k, v in self.mapper.decisions().items()})
         rejected = self.rejected + self.mapper.rejected
         values.update({f"rejected {k}": v for k, v in sorted(rejected.items())})
         values["rejected total"] = sum(rejected.values())

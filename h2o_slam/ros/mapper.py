@@ -49,6 +49,7 @@ from h2o_slam.core.geometry import planar_between, planar_compose
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, edge_chi2
 from h2o_slam.core.modes import add_arrival, arrivals
 from h2o_slam.core.online import OnlineConfig, OnlineH2O, StepReport
+from h2o_slam.core.robust import EdgeState, RobustConfig, edge_states, odometry_edges
 from h2o_slam.core.solver import SolverConfig
 from h2o_slam.io.map_store import SavedMap, has_map, load_map, save_map
 
@@ -69,6 +70,9 @@ MAX_COORDINATE_M = 1e8
 #: therefore stays within 1e-12 .. 1e12.
 MIN_SIGMA = 1e-6
 MAX_SIGMA = 1e6
+#: The map's own position uncertainty (m) a GPS fix's gate allows beside the fix's: wide
+#: enough for odometry drift over a short outage, narrow against a multipath jump.
+GPS_GATE_SIGMA_M = 2.0
 
 
 @dataclass
@@ -90,6 +94,10 @@ class MapperConfig:
         d_max: most nodes solved for per edge (``None``: as many as the budget allows).
         background: where the exact solves that take the map to its optimum run
             (``OnlineConfig.background``): ``process``, ``inline`` or ``off``.
+        robust: loop closures and GPS fixes are possible outliers: the exact solves weigh
+            them by GNC-TLS (:mod:`h2o_slam.core.robust`) and revise every decision with
+            each solve; a closure or fix the χ² gate doubts is kept in the graph at weight
+            0 (held) for them to re-admit. ``False``: least squares, and the gate refuses.
     """
 
     keyframe_distance_m: float = 0.5
@@ -107,6 +115,7 @@ class MapperConfig:
     budget_ms: float | None = 5.0
     d_max: int | None = None
     background: str = "inline"
+    robust: bool = True
 
     def __post_init__(self) -> None:
         for name in ("keyframe_distance_m", "keyframe_angle_rad", "keyframe_period_s",
@@ -227,8 +236,10 @@ class Mapper:
                  solver: SolverConfig | None = None) -> None:
         self.config = config or MapperConfig()
         self._solver_config = solver
+        robust = RobustConfig() if self.config.robust else None
         self.h2o = OnlineH2O(True, solver, OnlineConfig(d_max=self.config.d_max,
-                                                        background=self.config.background))
+                                                        background=self.config.background,
+                                                        robust=robust))
         self.keyframes = Keyframes()
         self.track = OdometryTrack()
         self.rejected: Counter[str] = Counter()
@@ -414,9 +425,13 @@ class Mapper:
             raise self.reject("loop_not_finite",
                               f"loop closure {a}->{b} carried onto keyframes is not finite")
         info = self._information(planar_info, cov3, "loop_not_finite", "loop closure")
-        self._gate(a, b, meas, cov3)
-        edge = self.h2o.add_edge(EdgeKind.RELATIVE, a, b, geo.yaw_to_matrix(meas[2]),
-                                 np.array([meas[0], meas[1], 0.0]), info)
+        passes = self._gate(a, b, meas, cov3)
+        args = (EdgeKind.RELATIVE, a, b, geo.yaw_to_matrix(meas[2]),
+                np.array([meas[0], meas[1], 0.0]), info)
+        if not passes:  # robust: kept at weight 0 for the exact solves to weigh
+            self.accepted["loop_closure_held"] += 1
+            return self.h2o.add_held_edge(*args)
+        edge = self.h2o.add_edge(*args)
         self.accepted["loop_closure"] += 1
         return edge
 
@@ -441,13 +456,15 @@ class Mapper:
             return node, np.zeros(3)
         return node, planar_between(self.keyframes.odom[node], self.track.at(stamp))
 
-    def _gate(self, a: int, b: int, meas: Array, cov3: Array) -> None:
+    def _gate(self, a: int, b: int, meas: Array, cov3: Array) -> bool:
+        """Whether the closure passes the χ² gate. Without robust estimation a closure that
+        does not is refused (``loop_gated``); with it, it is held (returns False)."""
         if not math.isfinite(self.config.loop_gate_chi2):
-            return
+            return True
         lo, hi = min(a, b), max(a, b)
         chain = np.asarray(self.keyframes.chain_cov[lo + 1: hi + 1])
         if len(chain) == 0 or np.isnan(chain).any():
-            return  # ends in different subtrees: nothing to weigh the error against
+            return True  # ends in different subtrees: nothing to weigh the error against
         odom = np.asarray(self.keyframes.odom[lo: hi + 1])
         to_end = planar_between(odom[1:], odom[-1][None, :])
         ad = _adjoint_inverse(to_end)
@@ -470,12 +487,15 @@ class Mapper:
             raise self.reject("loop_not_finite",
                               f"loop closure {a}->{b}: chi2 {chi2} is not finite (error "
                               f"{err.tolist()})")
+        if chi2 > self.config.loop_gate_chi2 and self.config.robust:
+            return False
         if chi2 > self.config.loop_gate_chi2:
             raise self.reject(
                 "loop_gated",
                 f"loop closure {a}->{b} rejected: chi2 {chi2:.1f} > gate "
                 f"{self.config.loop_gate_chi2:.1f} (error {err[0]:.2f} m, {err[1]:.2f} m, "
                 f"{err[2]:.3f} rad)")
+        return True
 
     def add_gps(self, stamp_ns: int, enu: Array, cov3: Array) -> int | None:
         """A GPS fix (ENU metres, 3×3 covariance); returns the edge (``None`` while the fix
@@ -502,9 +522,29 @@ class Mapper:
                               f"{meas_t.tolist()} is not finite")
         info = np.zeros((6, 6))
         info[:3, :3] = gps_info
-        edge = self.h2o.add_edge(EdgeKind.POSITION, EARTH, node, np.eye(3), meas_t, info)
+        args = (EdgeKind.POSITION, EARTH, node, np.eye(3), meas_t, info)
+        if not self._gps_passes(node, meas_t, cov3):  # robust: held for the exact solves
+            self.accepted["gps_held"] += 1
+            return self.h2o.add_held_edge(*args)
+        edge = self.h2o.add_edge(*args)
         self.accepted["gps"] += 1
         return edge
+
+    def _gps_passes(self, node: int, meas_t: Array, cov3: Array) -> bool:
+        """Whether a fix on a node already placed by GPS lies within the χ² gate of the map:
+        its error weighed by its own covariance plus :data:`GPS_GATE_SIGMA_M` for the map's
+        own uncertainty. A multipath jump (tens of metres) is held rather than relaxed into
+        the map by the budgeted updates; the robust exact solves weigh it again with the
+        map's real uncertainty and re-admit it if it fits."""
+        if not (self.config.robust and math.isfinite(self.config.loop_gate_chi2)
+                and self.h2o.gps_aligned(node)):
+            return True
+        _, t = self.h2o.solver.world_pose(node)
+        err = (t - meas_t)[:2]
+        S = cov3[:2, :2] + GPS_GATE_SIGMA_M**2 * np.eye(2)
+        with np.errstate(all="ignore"):
+            chi2 = float(err @ np.linalg.solve(S, err))
+        return bool(chi2 <= self.config.loop_gate_chi2)
 
     def _gps_node(self, stamp_ns: int) -> int:
         tol = self.config.gps_time_tolerance_s
@@ -543,19 +583,45 @@ class Mapper:
         return before, self.chi2()
 
     def chi2(self) -> float:
-        """χ² of every edge at the current estimate."""
-        return float(np.sum(edge_chi2(self.graph()))) if self.h2o.solver.num_edges else 0.0
+        """χ² of every edge at the current estimate, each weighted by its robust weight (the
+        χ² the back end minimizes: a dropped outlier adds nothing)."""
+        return float(np.sum(self.edge_chi2()))
+
+    def edge_chi2(self) -> Array:
+        """Each edge's χ² at the current estimate times its robust weight."""
+        if not self.h2o.solver.num_edges:
+            return np.zeros(0)
+        return edge_chi2(self.graph()) * self.h2o.solver.weight
+
+    def decisions(self) -> dict[str, int]:
+        """The robust back end's account: loop closures and GPS fixes in the map now
+        (``accepted``), held or dropped (weight 0), and the decisions merged solutions
+        reversed (``dropped`` after being in, ``readmitted`` after being out)."""
+        s = self.h2o.solver
+        states = edge_states(s.weight, odometry_edges(s.kind, s.a, s.b))
+        closures = (s.kind == EdgeKind.RELATIVE) & (states != EdgeState.TRUSTED)
+        fixes = s.kind == EdgeKind.POSITION
+        out: dict[str, int] = {}
+        for name, mask in (("loop_closures", closures), ("gps_fixes", fixes)):
+            out[f"{name} in"] = int(np.count_nonzero(mask & (states == EdgeState.ACCEPTED)))
+            out[f"{name} down-weighted"] = int(np.count_nonzero(
+                mask & (states == EdgeState.DOWNWEIGHTED)))
+            out[f"{name} out"] = int(np.count_nonzero(mask & (states == EdgeState.DROPPED)))
+        out["decisions dropped"] = self.h2o.decisions["dropped"]
+        out["decisions readmitted"] = self.h2o.decisions["readmitted"]
+        return out
 
     def optimality(self, per_edge_chi2: Array | None = None) -> tuple[float, int]:
         """χ² of the edges in the last converged exact solution, at the current estimate, over
         that solution's χ² (1 right after it is merged; NaN before the first), and the edges
-        not in it. ``per_edge_chi2``: every edge's χ² now, when the caller has it."""
+        not in it. ``per_edge_chi2``: every edge's weighted χ² now (:meth:`edge_chi2`), when
+        the caller has it."""
         state = self.h2o.converger.state
         outside = self.h2o.converger.outside()
         if state.converged_edges == 0:
             return math.nan, outside
         if per_edge_chi2 is None:
-            per_edge_chi2 = edge_chi2(self.graph())
+            per_edge_chi2 = self.edge_chi2()
         now = float(np.sum(per_edge_chi2[: state.converged_edges]))
         # Rounding leaves ~1e-25 on a graph that fits exactly (a chain): a floor of 1e-12
         # per edge keeps that from reading as a ratio far from 1.
@@ -629,7 +695,8 @@ class Mapper:
             # The odometry track carries stamped loop closures onto keyframes after a
             # restore too (about 1 MB per 10 minutes at 50 Hz).
             track_stamps_ns=self.track.stamps(), track_poses=self.track.poses(),
-            datum=self.datum, config=asdict(self.config)))
+            datum=self.datum, config=asdict(self.config),
+            weights=self.h2o.solver.weight.copy()))
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], config: MapperConfig | None = None,
@@ -645,8 +712,11 @@ class Mapper:
         graph = saved.graph
         mapper = cls(config, solver)
         try:
+            order: list[int] = []  # the file's edges in the order the solver holds them
             for node, edges in enumerate(arrivals(graph)):
-                add_arrival(mapper.h2o, graph, node, edges)
+                order += add_arrival(mapper.h2o, graph, node, edges)
+            if saved.weights is not None:  # every decision as it was, revised by the next solve
+                mapper.h2o.restore_weights(saved.weights[order])
             _set_estimate(mapper.h2o, graph.R, graph.t)
             kf = mapper.keyframes
             kf.stamps = [int(s) for s in saved.stamps_ns]

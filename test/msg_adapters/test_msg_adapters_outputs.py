@@ -27,7 +27,7 @@ from msg_adapters import (
     quaternion_to_matrix,
     stamp_ns,
 )
-from msg_adapters.outputs import residual_colors
+from msg_adapters.outputs import DROPPED_COLOR, residual_colors
 
 R = np.stack([random_rotation(k) for k in range(4)])
 T = np.arange(12, dtype=float).reshape(4, 3)
@@ -124,7 +124,8 @@ def test_graph_markers() -> None:
     )
     msg = fill_graph_markers(MarkerArray, graph, stamp_ns=3, clear=True)
     deserialize_message(serialize_message(msg), MarkerArray)  # well formed on the wire
-    wipe, nodes, edges, gps = msg.markers
+    wipe, nodes, edges, gps, dropped = msg.markers
+    assert (dropped.ns, len(dropped.points)) == ("dropped", 0)
     assert wipe.action == Marker.DELETEALL
     assert (nodes.ns, nodes.type, len(nodes.points)) == ("nodes", Marker.SPHERE_LIST, 4)
     assert (edges.ns, edges.type, len(edges.points), len(edges.colors)) == (
@@ -143,7 +144,29 @@ def test_graph_markers() -> None:
     assert gps.colors[2].b == 1.0 and gps.colors[2].r > 0.9
     # Without GPS or edges the namespaces stay, empty.
     only_nodes = fill_graph_markers(MarkerArray(), GraphMarkers(positions=T), stamp_ns=3)
-    assert [len(m.points) for m in only_nodes.markers] == [4, 0, 0]
+    assert [len(m.points) for m in only_nodes.markers] == [4, 0, 0, 0]
+
+
+def test_dropped_edges_and_fixes_are_drawn_apart() -> None:
+    """Closures and fixes the robust back end holds out leave the χ²-coloured lists for
+    their own namespace and colour."""
+    graph = GraphMarkers(
+        positions=T, edges=np.array([[0, 1], [1, 2], [2, 3], [3, 0]]),
+        edge_residuals=np.array([0.0, 1.0, 10.0, 1e6]), gps_nodes=np.array([1, 3]),
+        gps_positions=T[[1, 3]] + 0.5, gps_residuals=np.array([0.0, 100.0]),
+        edge_dropped=np.array([False, False, False, True]),
+        gps_dropped=np.array([False, True]))
+    _, edges, gps, dropped = fill_graph_markers(MarkerArray, graph, stamp_ns=3).markers
+    assert (len(edges.points), len(gps.points), len(dropped.points)) == (6, 2, 4)
+    assert dropped.ns == "dropped" and dropped.type == Marker.LINE_LIST
+    assert (dropped.color.r, dropped.color.g, dropped.color.b) == pytest.approx(
+        DROPPED_COLOR[:3])
+    assert (dropped.points[0].x, dropped.points[1].x) == (T[3, 0], T[0, 0])
+    assert dropped.points[3].x == T[3, 0] + 0.5  # the fix's measured position
+    with pytest.raises(AdapterError, match="edges dropped: expected 4 booleans"):
+        fill_graph_markers(MarkerArray, GraphMarkers(
+            positions=T, edges=graph.edges, edge_residuals=graph.edge_residuals,
+            edge_dropped=np.array([1, 0, 0, 0])), stamp_ns=3)
 
 
 @pytest.mark.parametrize(

@@ -21,6 +21,7 @@ from rcl_interfaces.srv import SetParameters
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import NavSatFix
 from std_srvs.srv import SetBool, Trigger
+from visualization_msgs.msg import MarkerArray
 
 import msg_adapters as ma
 from h2o_slam.core.errors import InputError
@@ -193,9 +194,10 @@ def test_gps_anchors_the_graph_in_enu(harness: Harness, slip_drive: world.Drive)
     assert graph_error < 0.35 * wheel_median
 
 
-def test_false_loop_closure_is_rejected_and_the_map_survives(
+def test_false_loop_closure_is_held_counted_and_the_map_survives(
         harness: Harness, loop_drive: world.Drive) -> None:
     node, out = start(harness, budget_ms=20.0)
+    markers = harness.subscribe(MarkerArray, "h2o_node/graph/markers", LATCHED)
     messages = stream(loop_drive, gps=False, loops=True)
     play(harness, messages, node)
     # At the optimum first (as ~/exact_solve does): merges of exact solves still under way
@@ -210,10 +212,20 @@ def test_false_loop_closure_is_rejected_and_the_map_survives(
                                ma.planar_covariance(0.05, 0.05, 0.01, unobserved_variance=1.0))
     harness.publish(Odometry, "loop_closure", ma.fill_loop_closure(Odometry, lie))
     harness.spin_for(0.3)
+    node.mapper.exact_solve()  # the robust optimum: the lie stays out
     diag = latest_diagnostics(harness, out, node)
-    assert int(diag["rejected loop_gated"]) == 1
+    # Held by the gate, kept out by the robust solve, counted; nothing refused.
+    assert int(diag["accepted loop_closure_held"]) == 1
+    assert int(diag["robust loop_closures out"]) == 1
+    assert int(diag["robust loop_closures in"]) == closures_before
+    assert "rejected loop_gated" not in diag
     assert node.mapper.accepted["loop_closure"] == closures_before
     np.testing.assert_allclose(node.mapper.poses(), before, atol=0.05)
+    # Drawn in its own namespace on ~/graph/markers.
+    node.publish_graph()
+    harness.spin_until(lambda: bool(markers), 5.0, "graph markers")
+    dropped = next(m for m in markers[-1].markers if m.ns == "dropped")
+    assert len(dropped.points) == 2
 
 
 def test_save_restart_restore_continues_without_loss(harness: Harness, tmp_path: Any,

@@ -97,9 +97,10 @@ def test_loop_closure_pulls_the_graph_together() -> None:
 
 
 def test_false_loop_closure_is_gated_and_the_map_survives() -> None:
+    """Without robust estimation the gate refuses (with it, see test_mapper_robust)."""
     truth = square_drive()
     odom = drifting_odometry(truth, yaw_bias_per_step=0.0005)
-    mapper = Mapper()
+    mapper = Mapper(MapperConfig(robust=False))
     feed(mapper, odom)
     before = mapper.poses().copy()
     cov = np.diag([0.05**2, 0.05**2, 0.01**2])
@@ -319,3 +320,147 @@ def test_latest_pose_applies_the_correction_it_is_given() -> None:
                                  + np.array([1.0, -2.0, 0.0]))
     assert shifted is not None
     np.testing.assert_allclose(shifted[1][:2], exact[1][:2] + [1.0, -2.0], atol=1e-12)
+
+
+# -- robust estimation: closures and fixes held or dropped, decisions revised -----------------
+
+ROBUST_COV = np.diag([0.05**2, 0.05**2, 0.01**2])
+
+
+@pytest.fixture()
+def drive():
+    truth = square_drive()
+    return truth, drifting_odometry(truth, yaw_bias_per_step=0.0005)
+
+
+def closures(truth: np.ndarray, every: int = 20) -> list[tuple[int, int]]:
+    """True revisits of the second lap: pose i of lap 2 and its twin on lap 1."""
+    lap = (len(truth) - 1) // 2
+    return [(i - lap, i) for i in range(lap + 5, len(truth), every)]
+
+
+def add_true(mapper: Mapper, truth: np.ndarray, pairs: list[tuple[int, int]]) -> None:
+    for a, b in pairs:
+        mapper.add_loop_closure(stamp(a), stamp(b), planar_between(truth[a], truth[b]),
+                                    ROBUST_COV)
+
+
+def test_a_gated_closure_is_held_and_the_map_survives(drive) -> None:
+    truth, odom = drive
+    mapper = Mapper(MapperConfig(budget_ms=None))
+    feed(mapper, odom)
+    before = mapper.poses().copy()
+    n = len(truth) - 1
+    wrong = planar_between(truth[n], truth[0]) + np.array([0.0, 0.0, math.pi])
+    edge = mapper.add_loop_closure(stamp(0), stamp(n // 2 + 40), wrong,
+                                    ROBUST_COV)
+    assert edge is not None and mapper.h2o.solver.weight[edge] == 0.0
+    assert mapper.accepted["loop_closure_held"] == 1 and not mapper.rejected
+    for _ in range(3):
+        mapper.step(None)
+    mapper.exact_solve()
+    assert mapper.h2o.solver.weight[edge] == 0.0  # the robust solve keeps it out
+    np.testing.assert_allclose(mapper.poses(), before, atol=1e-6)
+    assert mapper.decisions()["loop_closures out"] == 1
+
+
+def test_a_closure_accepted_early_is_dropped_when_true_ones_contradict_it(drive) -> None:
+    """A false closure that passes the gate (the loop is still open: dead reckoning allows
+    it) bends the map; the true closures of the revisit that follow contradict it, the
+    robust solve drops it and the map returns to the outlier-free one."""
+    truth, odom = drive
+    pairs = closures(truth)
+    clean = Mapper(MapperConfig(budget_ms=None))
+    feed(clean, odom)
+    add_true(clean, truth, pairs)
+    clean.exact_solve()
+    mapper = Mapper(MapperConfig(budget_ms=None))
+    feed(mapper, odom)
+    a, b = pairs[0]
+    false = planar_between(truth[a], truth[b]) + np.array([1.5, -1.0, 0.1])
+    edge = mapper.add_loop_closure(stamp(a), stamp(b), false,
+                                    ROBUST_COV)
+    mapper.exact_solve()
+    assert edge is not None and mapper.h2o.solver.weight[edge] == 1.0  # alone: believed
+    add_true(mapper, truth, pairs[1:])
+    mapper.exact_solve()
+    assert mapper.h2o.solver.weight[edge] == 0.0
+    assert mapper.decisions()["decisions dropped"] >= 1
+    ends = mapper.poses()[:, :2]
+    np.testing.assert_allclose(ends, clean.poses()[:, :2], atol=0.02)
+
+
+def test_a_true_closure_held_back_is_readmitted(drive) -> None:
+    """The gate is a cheap first filter: a true closure it doubts (here a gate far too
+    tight) is held, and the robust solve, which weighs the map's own uncertainty,
+    re-admits it."""
+    truth, odom = drive
+    mapper = Mapper(MapperConfig(budget_ms=None, loop_gate_chi2=0.01))
+    feed(mapper, odom)
+    a, b = closures(truth)[0]
+    edge = mapper.add_loop_closure(stamp(a), stamp(b), planar_between(truth[a], truth[b]),
+                                   ROBUST_COV)
+    assert edge is not None and mapper.accepted["loop_closure_held"] == 1
+    assert mapper.h2o.solver.weight[edge] == 0.0
+    mapper.exact_solve()
+    assert mapper.h2o.solver.weight[edge] == 1.0
+    assert mapper.decisions()["decisions readmitted"] == 1
+
+
+def test_robust_states_survive_save_and_load(drive, tmp_path) -> None:
+    truth, odom = drive
+    mapper = Mapper(MapperConfig(budget_ms=None))
+    feed(mapper, odom)
+    n = len(truth) - 1
+    wrong = planar_between(truth[n], truth[0]) + np.array([0.0, 0.0, math.pi])
+    held = mapper.add_loop_closure(stamp(0), stamp(n // 2 + 40), wrong,
+                                    ROBUST_COV)
+    add_true(mapper, truth, closures(truth))
+    mapper.exact_solve()
+    path = tmp_path / "map.g2o"
+    mapper.save(path)
+    assert held is not None and mapper.h2o.solver.weight[held] == 0.0
+    before = _weights_by_edge(mapper)
+    key = (int(mapper.h2o.solver.a[held]), int(mapper.h2o.solver.b[held]))
+    mapper.close()
+    again = Mapper.load(path, MapperConfig(budget_ms=None))
+    # A restore re-adds the edges in arrival order: each keeps its own weight.
+    assert _weights_by_edge(again) == before
+    assert again.decisions() == {**mapper.decisions(), "decisions dropped": 0,
+                                 "decisions readmitted": 0}
+    again.add_odometry(START + (n + 1) * NS // 10, odom[-1])
+    again.exact_solve()
+    assert _weights_by_edge(again)[key] == 0.0
+    again.close()
+
+
+def _weights_by_edge(mapper: Mapper) -> dict[tuple[int, int], float]:
+    s = mapper.h2o.solver
+    return {(int(a), int(b)): float(w) for a, b, w in zip(s.a, s.b, s.weight, strict=True)}
+
+
+def test_a_gps_jump_is_held_and_does_not_move_the_map() -> None:
+    truth = square_drive(laps=1)
+    odom = drifting_odometry(truth, yaw_bias_per_step=0.0005)
+    mapper = Mapper(MapperConfig(budget_ms=None))
+    fixes = range(0, len(truth), 4)
+    for i in range(len(odom)):
+        mapper.add_odometry(START + i * NS // 10, odom[i])
+        if i in fixes:
+            mapper.add_gps(START + i * NS // 10, np.array([*truth[i][:2], 0.0]),
+                           np.eye(3) * 0.1**2)
+        mapper.step(None)
+    mapper.exact_solve()
+    before = mapper.poses().copy()
+    jump = np.array([30.0, -20.0, 0.0])
+    for k in range(len(odom), len(odom) + 40):
+        pose = truth[-1] if k == len(odom) else mapper.track.latest()[1]
+        mapper.add_odometry(START + k * NS // 10, pose + np.array([0.001 * (k - len(odom)), 0, 0]))
+        if k % 4 == 0:
+            mapper.add_gps(START + k * NS // 10, np.array([*pose[:2], 0.0]) + jump,
+                           np.eye(3) * 0.1**2)
+        mapper.step(None)
+    mapper.exact_solve()
+    assert mapper.accepted["gps_held"] >= 9 and mapper.decisions()["gps_fixes out"] >= 9
+    shift = np.linalg.norm(mapper.poses()[: len(before), :2] - before[:, :2], axis=1)
+    assert shift.max() < 0.05

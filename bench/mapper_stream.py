@@ -1,0 +1,121 @@
+"""A planar g2o graph fed through the node's back end, as a robot would feed it.
+
+:func:`stream_graph` drives :class:`h2o_slam.ros.mapper.Mapper` (``h2o_node`` without ROS)
+with the graph's odometry chain as odometry samples one second apart (each one a keyframe,
+so keyframe ``k`` is node ``k``), its loop closures by node id at the arrival of their newer
+end, and its GPS fixes by stamp, one budgeted step per arriving pose, as the node's
+odometry callback runs it. Then it idles (budgeted steps, as the node's idle timer) and
+solves exactly (``~/exact_solve``). The mapper's odometry noise model is its own
+(``MapperConfig``), so its map is compared with its own map of the outlier-free graph.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from h2o_slam.core import geometry as geo
+from h2o_slam.core.errors import InputError
+from h2o_slam.core.graph import EdgeKind, PoseGraph
+from h2o_slam.core.modes import arrivals
+from h2o_slam.core.robust import odometry_edges
+from h2o_slam.ros.mapper import Mapper, MapperConfig
+
+NS = 1_000_000_000
+START_NS = 1_700_000_000 * NS
+
+
+@dataclass
+class StreamResult:
+    """The mapper's map after the stream, the idle steps and its exact solve.
+
+    Attributes:
+        R, t: world poses of the graph's nodes.
+        weights: the mapper's final weight of each of the graph's edges (0 for a closure it
+            refused outright).
+        callback_ms: wall time of each pose's callback (odometry, its closures and fixes,
+            one budgeted step).
+        seconds: wall time of the whole stream, idle and exact solve.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    weights: np.ndarray
+    callback_ms: np.ndarray
+    seconds: float
+
+
+def odometry_poses(graph: PoseGraph) -> np.ndarray:
+    """``(x, y, yaw)`` of each node by composing the odometry chain from node 0."""
+    odo = np.flatnonzero(odometry_edges(graph.kind, graph.a, graph.b))
+    step = {}
+    for e in odo.tolist():
+        d = np.array([graph.meas_t[e, 0], graph.meas_t[e, 1],
+                      float(geo.matrix_to_yaw(graph.meas_R[e]))])
+        a, b = int(graph.a[e]), int(graph.b[e])
+        step[max(a, b)] = d if b > a else geo.planar_between(d, np.zeros(3))
+    poses = np.zeros((graph.num_nodes, 3))
+    for k in range(1, graph.num_nodes):
+        poses[k] = geo.planar_compose(poses[k - 1], step.get(k, np.zeros(3)))
+    return poses
+
+
+def stream_graph(graph: PoseGraph, budget_ms: float = 5.0, idle_s: float = 1.0,
+                 background: str = "process") -> StreamResult:
+    """Feed ``graph`` (planar) through a :class:`Mapper`; see the module docstring."""
+    poses = odometry_poses(graph)
+    odometry = odometry_edges(graph.kind, graph.a, graph.b)
+    config = MapperConfig(keyframe_distance_m=0.0, keyframe_angle_rad=0.0,
+                          keyframe_period_s=0.5, budget_ms=budget_ms, background=background)
+    mapper = Mapper(config)
+    mapped = np.full(graph.num_edges, -1)
+    times = []
+    begin = time.perf_counter()
+    try:
+        for k, edges in enumerate(arrivals(graph)):
+            start = time.perf_counter()
+            mapper.add_odometry(START_NS + k * NS, poses[k])
+            for e in edges.tolist():
+                if not odometry[e]:
+                    mapped[e] = _add_edge(mapper, graph, e)
+            mapper.step()
+            times.append(1e3 * (time.perf_counter() - start))
+        until = time.perf_counter() + idle_s
+        while time.perf_counter() < until:
+            mapper.step()
+        mapper.exact_solve()
+        seconds = time.perf_counter() - begin
+        weights = _graph_weights(mapper, graph, mapped, odometry)
+        R, t = mapper.h2o.solver.world_poses()
+    finally:
+        mapper.close()
+    return StreamResult(R, t, weights, np.array(times), seconds)
+
+
+def _add_edge(mapper: Mapper, graph: PoseGraph, e: int) -> int:
+    """A loop closure or GPS fix of the graph into the mapper; its edge there (-1: refused)."""
+    try:
+        if graph.kind[e] == EdgeKind.POSITION:
+            cov = np.eye(3)
+            cov[:2, :2] = np.linalg.inv(graph.info[e][:2, :2])
+            edge = mapper.add_gps(START_NS + int(graph.b[e]) * NS, graph.meas_t[e], cov)
+        else:
+            delta = np.array([graph.meas_t[e, 0], graph.meas_t[e, 1],
+                              float(geo.matrix_to_yaw(graph.meas_R[e]))])
+            cov = np.linalg.inv(graph.info[e][np.ix_(geo.PLANAR_DOF, geo.PLANAR_DOF)])
+            edge = mapper.add_loop_closure(int(graph.a[e]), int(graph.b[e]), delta, cov)
+    except InputError:
+        return -1
+    return -1 if edge is None else int(edge)
+
+
+def _graph_weights(mapper: Mapper, graph: PoseGraph, mapped: np.ndarray,
+                   odometry: np.ndarray) -> np.ndarray:
+    weights = np.ones(graph.num_edges)
+    solver_weight = mapper.h2o.solver.weight
+    closures = ~odometry
+    weights[closures] = np.where(mapped[closures] >= 0,
+                                 solver_weight[np.maximum(mapped[closures], 0)], 0.0)
+    return weights
