@@ -30,6 +30,7 @@ from h2o_slam.core.online import OnlineConfig, OnlineH2O
 from h2o_slam.core.robust import (
     RobustConfig,
     converge_robust,
+    lago_restart,
     odometry_edges,
     thresholds,
     tls_cost,
@@ -247,7 +248,7 @@ def _solve_robust(graph: PoseGraph, iterations: int, config: SolverConfig | None
                   robust: RobustConfig) -> SolveResult:
     trusted = odometry_edges(graph.kind, graph.a, graph.b)
     solver, start = build_solver(graph, config, init, regularizer=False, trusted=trusted)
-    restart = _lago_restart(graph) if graph.planar else None
+    restart = lago_restart(graph) if graph.planar else None
     outcome = converge_robust(solver, iterations, trusted, robust, restart=restart)
     return _exact_result(solver, start, outcome.history, outcome.converged, init)
 
@@ -274,24 +275,6 @@ def robust_cost(graph: PoseGraph, R: Array, t: Array, robust: RobustConfig) -> f
 
 def _has_global(graph: PoseGraph) -> bool:
     return bool(np.any(graph.kind != EdgeKind.RELATIVE))
-
-
-def _lago_restart(graph: PoseGraph) -> Callable[[Array], tuple[Array, Array]]:
-    """LAGO of ``graph`` with each edge's information scaled by a weight (0: left out): the
-    robust solve's cold start for a set of accepted edges (no initial guess, no local
-    minimum to fall into)."""
-    from h2o_slam.core.lago import lago
-
-    def start(weights: Array) -> tuple[Array, Array]:
-        keep = (weights > 0.0) & (graph.kind == EdgeKind.RELATIVE)
-        sub = graph.copy()
-        for name in ("kind", "a", "b", "meas_R", "meas_t"):
-            setattr(sub, name, getattr(graph, name)[keep])
-        sub.info = graph.info[keep] * weights[keep][:, None, None]
-        result = lago(sub, ignore_global=True)
-        return result.R, result.t
-
-    return start
 
 
 def solve_lago(graph: PoseGraph) -> SolveResult:

@@ -108,6 +108,23 @@ class RobustOutcome:
     converged: bool
 
 
+def lago_restart(graph: PoseGraph) -> Restart:
+    """LAGO (Carlone et al.) of the planar ``graph``'s relative edges, each edge's
+    information scaled by a weight (0: left out): the robust solve's cold start for a set of
+    decisions, with no initial guess and so no local minimum of its own to fall into."""
+    from h2o_slam.core.lago import lago
+
+    def start(weights: Array) -> tuple[Array, Array]:
+        keep = (weights > 0.0) & (graph.kind == EdgeKind.RELATIVE)
+        sub = PoseGraph(graph.planar, graph.ids, graph.R, graph.t, graph.kind[keep],
+                        graph.a[keep], graph.b[keep], graph.meas_R[keep], graph.meas_t[keep],
+                        graph.info[keep] * weights[keep][:, None, None])
+        result = lago(sub, ignore_global=True)
+        return result.R, result.t
+
+    return start
+
+
 def odometry_edges(kind: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Relative edges between consecutive poses: the odometry chain of a g2o graph and of
     :class:`~h2o_slam.ros.mapper.Mapper`'s keyframes (trusted by the robust solve)."""
@@ -180,17 +197,34 @@ def converge_robust(
     # A new edge refused, or an accepted one contradicted: the earlier decisions may be
     # what is wrong (a false closure accepted while its loop was open), so graduate from
     # the seed as well and keep the answer of lower TLS cost.
-    kept = None
-    if outcome is not None:
-        kept = (tls_cost(solver_residuals(solver), ~trusted, c2), solver.tree.R.copy(),
-                solver.tree.t.copy(), outcome)
-    solver.tree.R[:], solver.tree.t[:] = seed
-    graduated = _graduate(solver, iterations, ~trusted, c2, cfg, restart)
-    if kept is None or tls_cost(solver_residuals(solver), ~trusted, c2) < kept[0]:
-        return graduated
-    solver.tree.R[:], solver.tree.t[:] = kept[1], kept[2]
-    solver.set_weights(kept[3].weights)
-    return kept[3]
+    # From the seed and, where there is a cold start, from that of every edge and from the
+    # odometry alone's (the seed may be bent by the decisions in doubt; which start avoids
+    # the local minima of least squares depends on the graph, as in h2o-solve).
+    best = None if outcome is None else _scored(solver, trusted, c2, outcome)
+    starts: list[tuple[Array, Array] | Array] = [seed]
+    if restart is not None:
+        starts += [np.ones(solver.num_edges), trusted.astype(float)]
+    for start in starts:
+        if isinstance(start, tuple):
+            solver.tree.R[:], solver.tree.t[:] = start
+        else:
+            assert restart is not None
+            solver.tree.set_world_poses(*restart(start))
+        graduated = _scored(solver, trusted, c2,
+                            _graduate(solver, iterations, ~trusted, c2, cfg, restart))
+        if best is None or graduated[0] < best[0]:
+            best = graduated
+    assert best is not None
+    solver.tree.R[:], solver.tree.t[:] = best[1], best[2]
+    solver.set_weights(best[3].weights)
+    return best[3]
+
+
+def _scored(solver: H2OSolver, trusted: np.ndarray, c2: Array, outcome: RobustOutcome
+            ) -> tuple[float, Array, Array, RobustOutcome]:
+    """An outcome with the TLS cost and the poses it left the solver at."""
+    return (tls_cost(solver_residuals(solver), ~trusted, c2), solver.tree.R.copy(),
+            solver.tree.t.copy(), outcome)
 
 
 def carry_on(solver: H2OSolver, iterations: int, trusted: np.ndarray, c2: Array,
