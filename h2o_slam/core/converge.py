@@ -370,7 +370,10 @@ def _shutdown(conn: Connection, reply: Connection, process: subprocess.Popen[byt
         process.wait(timeout=1.0)
     except subprocess.TimeoutExpired:
         process.kill()
-        process.wait(timeout=1.0)
+        try:  # SIGKILL ends it; a starved machine may take a while to schedule the exit
+            process.wait(timeout=10.0)
+        except subprocess.TimeoutExpired:
+            pass  # abandoned rather than raised into a node's or a solve's shutdown
     reply.close()
     shutil.rmtree(folder, ignore_errors=True)
 

@@ -1,7 +1,7 @@
 """The three covariance variants of a planar pose graph in Carlone et al.'s Table 1.
 
 Carlone, Yin, Rosa and Yuan, *Graph optimization with unstructured covariance*
-(``../shared/seeds/carlone_lago_unstructured_covariance.txt``, §4) test every data set in
+(SIMPAR 2014, §4) test every data set in
 three variants that keep its relative pose measurements and change their covariance:
 
 * ``"I"`` — identity covariance, ``ε ~ N(0, I₃)``;

@@ -1,8 +1,8 @@
 """LAGO: the linear approximation of planar pose-graph optimization with full covariance.
 
 Implements Carlone, Yin, Rosa and Yuan, *Graph optimization with unstructured covariance:
-fast, accurate, linear approximation* (``../shared/seeds/carlone_lago_unstructured_
-covariance.txt``; equation numbers below are the paper's). No initial guess is needed.
+fast, accurate, linear approximation* (SIMPAR 2014; equation numbers below are the
+paper's). No initial guess is needed.
 
 0. **The paper's frame.** The paper's residual (3) measures the translation error in the
    frame of node ``i``; the project's χ² (DESIGN §2, like g2o and GTSAM) in the frame of the

@@ -33,7 +33,6 @@ from enum import IntEnum
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
 from scipy.stats import chi2 as chi2_distribution
 
@@ -42,6 +41,7 @@ from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, edge_chi2
 from h2o_slam.core.jacobians import endpoint_jacobians
 from h2o_slam.core.solver import H2OSolver
+from h2o_slam.core.spd import SPDFactor, upper
 
 #: ``restart(weights) -> (R, t)``: a start for the solve with these edge weights.
 Restart = Callable[[Array], tuple[Array, Array]]
@@ -296,6 +296,7 @@ def _settle(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, iterations
     revisit of 6 true closures dropped for a TLS cost of 931 where the outlier-free map's
     is 304."""
     converged = _tls_rounds(solver, w, free, c2, iterations, history)
+    start = len(history)
     for _ in range(rounds):
         moved = False
         out = np.flatnonzero(free & (w < 0.5))
@@ -321,33 +322,53 @@ def _settle(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, iterations
                         break
         if not (moved or _drop_strained(solver, w, free, c2, iterations, history, restart)):
             break
+    if len(history) > start:  # moves were tried on capped solves: finish the last one
+        converged = _tls_rounds(solver, w, free, c2, iterations, history, solve_first=True)
     return converged
+
+
+#: Gauss–Newton iterations a trial move gets before its TLS cost is compared (a move kept
+#: is solved to convergence at the end): trials are most of a robust solve's time.
+TRIAL_ITERATIONS = 15
 
 
 def _drop_strained(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, iterations: int,
                    history: list[float], restart: Restart | None) -> bool:
-    """Try dropping the accepted closures under the most strain, by place (a group of
-    mutually consistent false closures the graduation let in holds the map against the
-    rest); returns whether a drop lowered the TLS cost."""
+    """Try dropping accepted closures that hold the map against the rest: those whose
+    removal would lower the cost most (:func:`deletion_chi2` beyond ``c̄²``: a false
+    closure that alone ties a weakly held stretch fits the map it bent, its strain spread
+    over the trusted odometry), those under the most strain, and places with several (a
+    group of mutually consistent false closures); returns whether a drop was kept."""
     inside = np.flatnonzero(free & (w > 0.5))
     if not len(inside):
         return False
     ratio = solver_residuals(solver)[inside] / c2[inside]
     strained = ratio > STRAIN
-    if not strained.any():
-        return False
-    inside, ratio = inside[strained], ratio[strained]
-    # Single closures first, the most strained first (a false closure among true ones of
-    # the same revisit shares their place, so its cluster would take them out with it),
-    # then whole places (a group of false closures that agree with each other).
-    singles = [np.array([i]) for i in np.argsort(-ratio)[:MAX_TRIES]]
-    groups = [g for g in _clusters(solver.a[inside], solver.b[inside], -ratio) if len(g) > 1]
+    order = [i for i in np.argsort(-ratio)[:MAX_TRIES] if strained[i]]
+    if len(inside) * solver.num_nodes * solver.p <= DELETION_WORK:
+        # The deletion χ² is, to first order, the dropped edge's innovation after the drop:
+        # below SIGNIFICANT × c̄² the move would be refused, so it is not tried.
+        deletion = deletion_chi2(solver, inside) / c2[inside]
+        strained &= deletion > SIGNIFICANT
+        order = [i for i in np.argsort(-deletion)[:MAX_TRIES] if deletion[i] > SIGNIFICANT]
+        order += [i for i in np.argsort(-ratio)[:MAX_TRIES] if strained[i]]
+    # Single closures first (a false closure among true ones of the same revisit shares
+    # their place, so its cluster would take them out with it), then whole places.
+    singles = [np.array([i]) for i in dict.fromkeys(order)]
+    groups = [np.flatnonzero(strained)[g] for g in _clusters(
+        solver.a[inside[strained]], solver.b[inside[strained]], -ratio[strained]) if len(g) > 1]
     moved = False
     for group in singles + groups[:MAX_TRIES]:
         kept, _ = _try_move(solver, w, free, c2, inside[group], 0.0, iterations, history,
                             False, restart)
         moved |= kept
     return moved
+
+
+#: Largest (accepted closures × unknowns) for which a drop round computes every closure's
+#: :func:`deletion_chi2` (``2p`` columns of ``H⁻¹`` each, dense: intel's 785 closures ×
+#: 5184 unknowns take ~1 s; manhattan's 1954 × 10500, 5-10 s, are left to the strain test).
+DELETION_WORK = 1e7
 
 
 #: Accepted closures whose residual is above this share of ``c̄²`` are tried out.
@@ -393,7 +414,8 @@ def _try_move(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, edges: n
             solver.tree.set_world_poses(*start(trial))
         w[edges] = weight
         solver.set_weights(w)
-        now = _tls_rounds(solver, w, free, c2, iterations, history, solve_first=True)
+        now = _tls_rounds(solver, w, free, c2, min(iterations, TRIAL_ITERATIONS), history,
+                          solve_first=True)
         if tls_cost(solver_residuals(solver), free, c2) < cost * (1.0 - 1e-9) and (
                 weight > 0.0 or _significant(solver, edges, c2)):
             return True, now
@@ -441,12 +463,21 @@ def _tls_rounds(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, iterat
     return converged
 
 
-def innovation_chi2(solver: H2OSolver, edges: np.ndarray, chunk: int = 128) -> Array:
+def deletion_chi2(solver: H2OSolver, edges: np.ndarray) -> Array:
+    """How much the optimal χ² of the map would fall without each of ``edges`` (each in it,
+    weight 1): ``rᵀ (I − J Σ_map Jᵀ)⁻¹ r`` in whitened terms, the leave-one-out residual.
+    Large for an edge the map bent to fit, however small its own residual."""
+    return innovation_chi2(solver, edges, sign=-1.0)
+
+
+def innovation_chi2(solver: H2OSolver, edges: np.ndarray, chunk: int = 128,
+                    sign: float = 1.0) -> Array:
     """χ² of each of ``edges``' residuals against ``Σ_e + J Σ_map Jᵀ``: its own covariance
     plus the covariance of its ends' relative pose in the map of the current weights
     (``Σ_map = H⁻¹`` of the weighted Gauss–Newton system, so the edge's own weight should
     be 0). Edges whose ends the system holds fixed see only their own covariance. Where
-    ``H`` cannot be factored, the plain residual χ²."""
+    ``H`` cannot be factored, the plain residual χ². ``sign`` −1: ``Σ_e − J Σ_map Jᵀ``
+    (:func:`deletion_chi2`)."""
     edges = np.asarray(edges, dtype=np.int64)
     H, _, free_nodes = ExactSystem(solver).normal_equations()
     p, dof = solver.p, solver.dof
@@ -467,24 +498,29 @@ def innovation_chi2(solver: H2OSolver, edges: np.ndarray, chunk: int = 128) -> A
     ends = np.stack([block[a], block[b]], axis=1)
     var = np.where(ends[:, :, None] >= 0, ends[:, :, None] * p + np.arange(p), -1)
     var = var.reshape(len(edges), 2 * p)  # unknown of each column of J, -1 where held
-    try:
-        lu = spla.splu(H.tocsc()) if H.shape[0] else None
-    except RuntimeError:  # singular: a direction no edge constrains
-        lu = None
+    U = upper(H)
+    factor = SPDFactor(U.indptr, U.indices) if H.shape[0] else None
     S = np.broadcast_to(np.eye(p), (len(edges), p, p)).copy()
-    for lo in range(0, len(edges) if lu is not None else 0, chunk):
-        S[lo: lo + chunk] += _map_term(lu, J[lo: lo + chunk], var[lo: lo + chunk], H.shape[0])
-    return np.einsum("ei,ei->e", r, np.linalg.solve(S, r[:, :, None])[:, :, 0])
+    try:
+        for lo in range(0, len(edges) if factor is not None else 0, chunk):
+            assert factor is not None
+            S[lo: lo + chunk] += sign * _map_term(lambda E: factor.solve(U.data, E),
+                                                  J[lo: lo + chunk], var[lo: lo + chunk],
+                                                  H.shape[0])
+    except np.linalg.LinAlgError:  # singular: a direction no edge constrains
+        S = np.broadcast_to(np.eye(p), (len(edges), p, p)).copy()
+    # Pseudo-inverse: I − JΣJᵀ of an edge the map cannot do without is singular.
+    return np.einsum("ei,eij,ej->e", r, np.linalg.pinv(S, hermitian=True), r)
 
 
-def _map_term(lu: spla.SuperLU, J: Array, var: np.ndarray, size: int) -> Array:
+def _map_term(solve: Callable[[Array], Array], J: Array, var: np.ndarray, size: int) -> Array:
     """``J Σ Jᵀ`` per edge, ``Σ`` the rows and columns ``var`` of ``H⁻¹`` (-1: held, 0)."""
     k, q = var.shape
     used = var >= 0
     cols = np.flatnonzero(used.ravel())
     E = np.zeros((size, len(cols)))
     E[var.ravel()[cols], np.arange(len(cols))] = 1.0
-    X = lu.solve(E)  # columns of H⁻¹
+    X = solve(E)  # columns of H⁻¹
     out = np.empty((k, J.shape[1], J.shape[1]))
     col_of = np.full(k * q, -1, dtype=np.int64)
     col_of[cols] = np.arange(len(cols))

@@ -101,7 +101,7 @@ class SPDFactor:
 
     def solve(self, data: Array, rhs: Array) -> Array:
         """Factor the matrix with values ``data`` (in the pattern's order) and solve
-        ``A x = rhs``.
+        ``A x = rhs`` (``rhs`` a vector, or a matrix of right-hand sides as columns).
 
         Raises:
             numpy.linalg.LinAlgError: no backend finds a factor (a singular matrix) or the
@@ -178,7 +178,7 @@ class _Cholmod:
                 options["supernodal"] = saved
         x = cvxopt.matrix(np.array(rhs, dtype=float))
         cholmod.solve(self._F, x)
-        return np.array(x, dtype=float).ravel()
+        return np.array(x, dtype=float).reshape(np.shape(rhs))
 
 
 class _QDLDL:
@@ -199,7 +199,11 @@ class _QDLDL:
             self._solver = self._qdldl.Solver(U)
         else:
             self._solver.update(U)
-        return np.asarray(self._solver.solve(np.asarray(rhs, dtype=float)), dtype=float)
+        rhs = np.asarray(rhs, dtype=float)
+        if rhs.ndim == 2:  # QDLDL solves one right-hand side at a time
+            return np.column_stack([self._solver.solve(np.ascontiguousarray(col))
+                                    for col in rhs.T]).reshape(rhs.shape)
+        return np.asarray(self._solver.solve(rhs), dtype=float)
 
 
 def solve_spd(matrix: Any, rhs: Array, method: str = "auto") -> Array:
