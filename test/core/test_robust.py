@@ -17,6 +17,7 @@ from h2o_slam.core.robust import (
     EdgeState,
     RobustConfig,
     converge_robust,
+    deletion_chi2,
     edge_states,
     initial_mu,
     innovation_chi2,
@@ -159,3 +160,22 @@ def test_innovation_is_what_adding_the_edge_costs(world):
     with_edge = converge_exact(solver, 100)[0][-1]
     assert innovation < plain  # the map's own uncertainty widens the test
     np.testing.assert_allclose(with_edge - without, innovation, rtol=0.05)
+
+
+def test_deletion_is_what_removing_the_edge_saves(world):
+    """The deletion χ² of an edge in the map equals the fall of the optimal χ² when it is
+    taken out (to first order, with small residuals), and exceeds its own residual: the
+    map bent to fit it."""
+    graph, _ = world
+    trusted = odometry_edges(graph.kind, graph.a, graph.b)
+    closure = int(np.flatnonzero(~trusted)[3])
+    solver, _ = build_solver(graph, init="tree", regularizer=False)
+    with_edge = converge_exact(solver, 100)[0][-1]
+    deletion = float(deletion_chi2(solver, np.array([closure]))[0])
+    plain = float(solver_residuals(solver)[closure])
+    weights = np.ones(graph.num_edges)
+    weights[closure] = 0.0
+    solver.set_weights(weights)
+    without = converge_exact(solver, 100)[0][-1]
+    assert deletion > plain
+    np.testing.assert_allclose(with_edge - without, deletion, rtol=0.05)
