@@ -368,9 +368,9 @@ Notes:
   excluded) at LM's estimate. The objectives differ: in this gtsam wheel the between
   factors' local coordinates are the group logarithm of T_meas⁻¹·(A⁻¹B) — `Pose2.Logmap`
   and `Pose3.Logmap`, whose translation part is V(θ)⁻¹·t — while ours are [t; Log R]
-  (DESIGN §2). The two agree to first order, so the ratio is ≈ 1 when the residuals are
-  small and departs from 1 when they are not; each solver can only be optimal in its own
-  metric. "exact/offline: 2·GTSAM error" score the H₂O outputs in GTSAM's metric, so a
+  (doc/design.md, Conventions). The two agree to first order, so the ratio is ≈ 1 when the
+  residuals are small and departs from 1 when they are not; each solver can only be optimal
+  in its own metric. "exact/offline: 2·GTSAM error" score the H₂O outputs in GTSAM's metric, so a
   worse LM χ² can be told apart from a metric difference (LM stuck in a worse minimum
   vs. LM at the minimum of its own objective).
 - "report χ² / ours": `chi2_final` of the H₂O report over our rescoring of its output file.

@@ -16,10 +16,10 @@ and returns one :class:`VoOutput` per frame: the corrected pose of ``base_link``
   the wheel increment is used and the reason is reported: the output is never missing for
   an accepted frame, and never a null pose.
 * Every rejected input raises :class:`InputRejected` after being counted by reason in
-  :attr:`VoFrontend.stats` (DESIGN §7); the frontend's state is unchanged by it. Wheel
-  positions beyond :data:`MAX_WHEEL_POSITION_M` are refused (``wheel_out_of_range``), and a
-  frame whose pose or covariance would not be finite is dropped (``frame_not_finite``)
-  without moving the track.
+  :attr:`VoFrontend.stats` (doc/nodes.md, bad input); the frontend's state is unchanged by
+  it. Wheel positions beyond :data:`MAX_WHEEL_POSITION_M` are refused
+  (``wheel_out_of_range``), and a frame whose pose or covariance would not be finite is
+  dropped (``frame_not_finite``) without moving the track.
 
 Stamps are integer nanoseconds; poses are ``(x_m, y_m, yaw_rad)`` of ``base_link`` in
 ``odom``; increments are ``T_prev⁻¹ T_new`` in the previous ``base_link`` (REP-103).

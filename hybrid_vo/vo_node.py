@@ -326,8 +326,8 @@ class HybridVoNode(Node):
 
     def _guarded(self, source: str, handler: Callable[..., None], *args: Any) -> None:
         """Run a callback's work: the boundary of every input callback. A bad input is
-        logged, counted and skipped (DESIGN §7); so is any other exception, counted as
-        ``<source>: unexpected <Type>`` (a bug, logged as an error)."""
+        logged, counted and skipped (doc/nodes.md, bad input); so is any other exception,
+        counted as ``<source>: unexpected <Type>`` (a bug, logged as an error)."""
         self._inputs_since_tick += 1
         try:
             handler(*args)

@@ -1,10 +1,10 @@
 """Pure functions between ROS 2 messages and the cores' types, with validation.
 
-The only code that knows message layouts (DESIGN §1). Every function works on rclpy
+The only code that knows message layouts (doc/design.md, Layering). Every function works on rclpy
 message objects and on messages deserialized from bags by ``rosbags`` (it reads fields by
 name), and nothing here imports rclpy or a message package at import time: outputs are
 written into a message instance, or a new instance of a class, passed in by the caller.
-Bad input raises :class:`AdapterError` naming the field and the problem (DESIGN §7).
+Bad input raises :class:`AdapterError` naming the field and the problem (doc/nodes.md, bad input).
 
 Modules: :mod:`~msg_adapters.stamps` (time stamps), :mod:`~msg_adapters.rotations`
 (quaternions), :mod:`~msg_adapters.odometry`, :mod:`~msg_adapters.images`,

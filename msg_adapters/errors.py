@@ -10,5 +10,6 @@ class AdapterError(InputError, ValueError):
 
     A :class:`h2o_slam.core.errors.InputError` (so a node can count every rejected input alike)
     and a :class:`ValueError` (so callers that know nothing of this package can still
-    catch it). Nodes log the text, count the message as rejected and skip it (DESIGN §7).
+    catch it). Nodes log the text, count the message as rejected and skip it
+    (doc/nodes.md, bad input).
     """

@@ -1,4 +1,5 @@
-"""Layering (DESIGN §1): h2o_slam is core < io < ros < app, and imports only run downward.
+"""Layering (doc/design.md, Layering): h2o_slam is core < io < ros < app, and imports only
+run downward.
 
 * ``h2o_slam.core`` — the solver mathematics: no file formats, no rclpy, no plotting.
 * ``h2o_slam.io`` — files and bags, over the core (rclpy only inside the bag writer).

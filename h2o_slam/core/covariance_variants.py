@@ -23,9 +23,10 @@ tight but finite position covariance across the (arbitrary) heading. The paper d
 say how it treated such edges.
 
 Covariances are built in the paper's frame (translation error in the frame of the first
-node); the project stores information in the frame of the measurement (DESIGN §2), so each
-one is rotated back (the inverse of :func:`h2o_slam.core.lago.paper_information`). The graph's
-estimate and measurements are kept as they are.
+node); the project stores information in the frame of the measurement (doc/design.md,
+Conventions), so each one is rotated back (the inverse of
+:func:`h2o_slam.core.lago.paper_information`). The graph's estimate and measurements are
+kept as they are.
 """
 
 from __future__ import annotations

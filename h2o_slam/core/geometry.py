@@ -1,6 +1,6 @@
 """Rigid-body geometry, batched over leading array axes.
 
-Conventions (DESIGN §2), stated once here for the whole package:
+Conventions (doc/design.md, Conventions), stated once here for the whole package:
 
 * Rotations are 3×3 matrices ``R`` (shape ``(..., 3, 3)``); a pose is a pair
   ``(R, t)`` mapping child-frame points into the parent frame: ``p_parent = R p + t``.

@@ -12,7 +12,7 @@ Edge kinds:
   :data:`EARTH`.
 
 The χ² evaluator :func:`chi2` is the single scoring function for every solver compared
-in this project (DESIGN §2).
+in this project (doc/design.md, Conventions).
 """
 
 from __future__ import annotations
@@ -124,9 +124,9 @@ def make_graph(
 ) -> PoseGraph:
     """Build a :class:`PoseGraph`, validating it and conditioning its information matrices.
 
-    Information matrices are symmetrized and eigen-clamped (DESIGN §2): eigenvalues below
-    :data:`INFO_EIG_FLOOR` × the largest are raised to that floor, so that no edge is
-    indefinite or singular in the coordinates it constrains. Clamped edges are logged
+    Information matrices are symmetrized and eigen-clamped (doc/design.md, Conventions):
+    eigenvalues below :data:`INFO_EIG_FLOOR` × the largest are raised to that floor, so that
+    no edge is indefinite or singular in the coordinates it constrains. Clamped edges are logged
     and listed in ``clamped_edges``.
 
     Raises:

@@ -5,8 +5,8 @@ fast, accurate, linear approximation* (SIMPAR 2014; equation numbers below are t
 paper's). No initial guess is needed.
 
 0. **The paper's frame.** The paper's residual (3) measures the translation error in the
-   frame of node ``i``; the project's χ² (DESIGN §2, like g2o and GTSAM) in the frame of the
-   measurement. The information matrices are rotated accordingly
+   frame of node ``i``; the project's χ² (doc/design.md, Conventions; like g2o and GTSAM)
+   in the frame of the measurement. The information matrices are rotated accordingly
    (:func:`paper_information`), which makes the paper's cost equal the project's χ²
    exactly (up to yaw wrapping). Skipping this is harmless only for isotropic position
    information; on CSAIL it costs three orders of magnitude in χ².
@@ -234,8 +234,8 @@ def lago(
 def paper_information(info: Array, meas_R: Array) -> Array:
     """Information matrices of the paper's residual (1) from the project's, shape (m, 3, 3).
 
-    The project's error (DESIGN §2, as g2o and GTSAM) puts the translation error in the
-    frame of the *measurement*: ``e_t = R_Kᵀ (R_iᵀ (p_j - p_i) - t_K)``; the paper's
+    The project's error (doc/design.md, Conventions; as g2o and GTSAM) puts the translation
+    error in the frame of the *measurement*: ``e_t = R_Kᵀ (R_iᵀ (p_j - p_i) - t_K)``; the paper's
     residual (3) has it in the frame of node ``i``: ``r_t = R_iᵀ (p_j - p_i) - Δ̄ˡ``. So
     ``e_t = R_Kᵀ r_t`` and ``eᵀ S e = rᵀ Ω r`` exactly for
     ``Ω = diag(R_K, 1) S diag(R_Kᵀ, 1)``. Using ``S`` unrotated would be exact only for

@@ -5,7 +5,7 @@ messages. Replay order is **bag time**: the time each message was recorded (its 
 log time, int nanoseconds), which is the order a live robot saw them in. Header stamps are
 reported beside it and checked per topic: a header stamp going backwards is counted in
 :class:`BagStats` and the message is still delivered, so the node that receives it is the
-one that rejects and counts it (DESIGN §7).
+one that rejects and counts it (doc/nodes.md, bad input).
 
 A damaged bag is read up to the damage: :meth:`BagReader.messages` yields every message
 it can, then raises :class:`~h2o_slam.io.bags.ReplayError`, so the caller still writes out

@@ -41,7 +41,7 @@ def write_tum(
 
     The stamp is written as exact decimal seconds (``sec.nanosec``, nine digits), so the
     integer nanoseconds read back unchanged; the other numbers at round-trip precision
-    (``repr``), so the float64 values read back bit for bit (DESIGN §2).
+    (``repr``), so the float64 values read back bit for bit (doc/design.md, Conventions).
 
     Args:
         stamps_ns: ``(N,)`` int ns.
