@@ -34,7 +34,7 @@ Solvers (every one from the graph as :func:`read_g2o` returns it, except H₂O, 
 from its spanning tree of odometry edges; odometry never gets a kernel):
 
 - ``h2o``: :func:`h2o_slam.core.modes.solve_exact` with ``robust=RobustConfig()`` (GNC-TLS,
-  ``c̄²`` the 0.99999 χ² quantile of the edge's degrees of freedom), what ``h2o-solve``
+  ``c̄²`` the 0.999999 χ² quantile of the edge's degrees of freedom), what ``h2o-solve``
   runs by default. Time: the call.
 - ``node``: the node's path, planar graphs only (:func:`mapper_stream.stream_graph`: the
   rclpy-free ``Mapper`` at a 5 ms budget with its worker process, odometry, closures and
@@ -54,7 +54,7 @@ from its spanning tree of odometry edges; odometry never gets a kernel):
   weight (2Φ / (Φ + r²))² above r² = Φ, so under 0.5 from χ² ≈ 1.83.
 - ``gnc``: ``GncLMOptimizer`` with ``GncLossType.TLS`` and the same LM settings inside, known
   inliers = the odometry factors and the prior, inlier thresholds set with
-  ``setInlierCostThresholdsAtProbability(0.99999)`` (GTSAM's default is 0.99) so that its
+  ``setInlierCostThresholdsAtProbability(0.999999)`` (GTSAM's default is 0.99) so that its
   ``c̄²`` is H₂O's; weights from ``getWeights()``.
 
 The kernels' weights are taken at the solution, of the plain factor's whitened distance
