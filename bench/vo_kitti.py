@@ -14,7 +14,7 @@ the road, level).
 
 Usage::
 
-    .venv/bin/python bench/vo_kitti.py /work/shared/data/kitti_stereo/sequence_1
+    .venv/bin/python bench/vo_kitti.py FOLDER    # a KITTI odometry stereo sequence
 """
 
 from __future__ import annotations
