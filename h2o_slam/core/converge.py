@@ -46,7 +46,7 @@ import numpy as np
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.exact import converge_exact
 from h2o_slam.core.geometry import Array
-from h2o_slam.core.graph import EARTH, PoseGraph
+from h2o_slam.core.graph import EARTH
 from h2o_slam.core.robust import RobustConfig, converge_robust, lago_restart, odometry_edges
 from h2o_slam.core.solver import H2OSolver, SolverConfig
 from h2o_slam.core.timing import CostModel
@@ -161,12 +161,7 @@ class ExactProblem:
             k = min(m, len(self._weights))
             start[:k] = self._weights[:k]
         trusted = odometry_edges(solver.kind, solver.a, solver.b)
-        restart = None
-        if solver.planar:
-            R, t = solver.world_poses()
-            restart = lago_restart(PoseGraph(True, np.arange(solver.num_nodes), R, t,
-                                             solver.kind, solver.a, solver.b, solver.meas_R,
-                                             solver.meas_t, solver.info))
+        restart = lago_restart(solver.graph(copy=False)) if solver.planar else None
         outcome = converge_robust(solver, iterations, trusted, self.robust, weights=start,
                                   restart=restart)
         self._weights = outcome.weights.copy()

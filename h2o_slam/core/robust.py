@@ -167,10 +167,7 @@ def edge_states(weights: Array, trusted: np.ndarray) -> np.ndarray:
 
 def solver_residuals(solver: H2OSolver) -> Array:
     """Unweighted χ² of each of the solver's edges at its current estimate."""
-    R, t = solver.world_poses()
-    graph = PoseGraph(solver.planar, np.arange(solver.num_nodes), R, t, solver.kind, solver.a,
-                      solver.b, solver.meas_R, solver.meas_t, solver.info)
-    return edge_chi2(graph)
+    return edge_chi2(solver.graph(copy=False))
 
 
 def converge_robust(
@@ -196,11 +193,10 @@ def converge_robust(
     if outcome is not None and not doubt:
         return outcome
     # A new edge refused, or an accepted one contradicted: the earlier decisions may be
-    # what is wrong (a false closure accepted while its loop was open), so graduate from
-    # the seed as well and keep the answer of lower TLS cost.
-    # From the seed and, where there is a cold start, from that of every edge and from the
-    # odometry alone's (the seed may be bent by the decisions in doubt; which start avoids
-    # the local minima of least squares depends on the graph, as in h2o-solve).
+    # what is wrong (a false closure accepted while its loop was open), so graduate again
+    # and keep the answer of lowest TLS cost. From the seed and, with a cold start, from
+    # LAGO of every edge and of the odometry alone: the seed may be bent by the decisions
+    # in doubt, and which start avoids least squares' local minima depends on the graph.
     best = None if outcome is None else _scored(solver, trusted, c2, outcome)
     starts: list[tuple[Array, Array] | Array] = [seed]
     if restart is not None:

@@ -347,6 +347,16 @@ class H2OSolver:
         """World poses of all nodes, shapes ``(N, 3, 3)`` and ``(N, 3)`` (new arrays)."""
         return self.tree.world_poses()
 
+    def graph(self, copy: bool = True) -> PoseGraph:
+        """The solver's nodes and edges as a graph holding the current estimate (edges in the
+        order they were added); ``copy=False`` shares the edge arrays (valid until the next
+        edge is added)."""
+        R, t = self.world_poses()
+        edges = [self.kind, self.a, self.b, self.meas_R, self.meas_t, self.info]
+        if copy:
+            edges = [x.copy() for x in edges]
+        return PoseGraph(self.planar, np.arange(self.num_nodes), R, t, *edges)
+
     def chi2(self, graph: PoseGraph) -> float:
         """χ² of ``graph`` (the graph this solver holds) at the solver's current estimate."""
         R, t = self.world_poses()

@@ -646,10 +646,7 @@ class Mapper:
 
     def graph(self) -> PoseGraph:
         """The graph with the current estimate (edges in the order they were added)."""
-        s = self.h2o.solver
-        R, t = s.world_poses()
-        return PoseGraph(True, np.arange(s.num_nodes), R, t, s.kind.copy(), s.a.copy(),
-                         s.b.copy(), s.meas_R.copy(), s.meas_t.copy(), s.info.copy())
+        return self.h2o.solver.graph()
 
     def map_to_odom(self) -> Array:
         """``T_map_odom`` as ``(x, y, yaw)`` from the newest keyframe (identity before it)."""
