@@ -19,6 +19,7 @@ from h2o_slam.core.robust import (
     converge_robust,
     deletion_chi2,
     edge_states,
+    group_chi2,
     initial_mu,
     innovation_chi2,
     odometry_edges,
@@ -179,3 +180,38 @@ def test_deletion_is_what_removing_the_edge_saves(world):
     without = converge_exact(solver, 100)[0][-1]
     assert deletion > plain
     np.testing.assert_allclose(with_edge - without, deletion, rtol=0.05)
+
+
+def test_joint_deletion_is_what_removing_the_group_saves(world):
+    """The joint deletion χ² of two closures equals the fall of the optimal χ² when both
+    are taken out (to first order), and a single-edge group is the edge's own."""
+    graph, _ = world
+    trusted = odometry_edges(graph.kind, graph.a, graph.b)
+    pair = np.flatnonzero(~trusted)[[3, 4]]
+    solver, _ = build_solver(graph, init="tree", regularizer=False)
+    with_edges = converge_exact(solver, 100)[0][-1]
+    joint, alone = group_chi2(solver, [pair, pair[:1]], sign=-1.0)
+    np.testing.assert_allclose(alone, deletion_chi2(solver, pair[:1])[0], rtol=1e-9)
+    weights = np.ones(graph.num_edges)
+    weights[pair] = 0.0
+    solver.set_weights(weights)
+    without = converge_exact(solver, 100)[0][-1]
+    np.testing.assert_allclose(with_edges - without, joint, rtol=0.05)
+
+
+def test_false_closures_that_hold_a_stretch_together_are_dropped_together():
+    """Two consistent false closures accepted together on a weakly tied walk (few closures,
+    noisy odometry): each one's deletion χ² is small (the other holds the bent stretch), so
+    only the place's joint drop finds the lower cost."""
+    graph = manhattan(400, seed=4, loop_probability=0.05, sigma_xy_m=0.2,
+                      sigma_yaw_rad=0.05).graph
+    optimum = solve_exact(graph)
+    planted = plant_outliers(graph, "random_grouped", 2, seed=1, group_size=2, span_m=3.0)
+    trusted = odometry_edges(planted.graph.kind, planted.graph.a, planted.graph.b)
+    solver, _ = build_solver(planted.graph, init="tree", regularizer=False)
+    converge_exact(solver, 100)  # least squares over every edge: bent to fit the pair
+    weights = np.ones(planted.graph.num_edges)
+    outcome = converge_robust(solver, 100, trusted, RobustConfig(), weights=weights)
+    assert np.all(outcome.weights[planted.outlier] == 0.0)
+    assert np.all(outcome.weights[~planted.outlier] == 1.0)
+    np.testing.assert_allclose(solver.world_poses()[1], optimum.t, atol=1e-4)
