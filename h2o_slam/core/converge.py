@@ -262,6 +262,18 @@ def _worker_main(conn: Connection, reply: Connection) -> None:
             return
 
 
+#: The worker's interpreter: SIGINT ignored before the first import (a second of numpy and
+#: numba), so a Ctrl-C sent to the worker itself cannot end it with a traceback either.
+_WORKER_CODE = ("import signal; signal.signal(signal.SIGINT, signal.SIG_IGN); import sys; "
+                "from h2o_slam.core.converge import worker_main; worker_main(sys.argv[1:])")
+
+
+def worker_main(fds: list[str]) -> None:
+    """The worker process's entry: the two pipe ends (read, write) it was started with."""
+    _worker_main(Connection(int(fds[0]), writable=False),
+                 Connection(int(fds[1]), readable=False))
+
+
 class WorkerProcess:
     """A worker process solving snapshots; every call returns at once."""
 
@@ -281,9 +293,12 @@ class WorkerProcess:
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(
             p for p in (package_root, env.get("PYTHONPATH", "")) if p)
+        # Its own session: a terminal's Ctrl-C signals the foreground process group, and
+        # the worker is not in it; the live side stops the worker (_shutdown).
         self._process = subprocess.Popen(
-            [sys.executable, "-m", "h2o_slam.core.converge", str(child_in), str(child_out)],
-            pass_fds=(child_in, child_out), env=env, stdin=subprocess.DEVNULL)
+            [sys.executable, "-c", _WORKER_CODE, str(child_in), str(child_out)],
+            pass_fds=(child_in, child_out), env=env, stdin=subprocess.DEVNULL,
+            start_new_session=True)
         os.close(child_in)
         os.close(child_out)
         self._conn = Connection(to_child, readable=False)
@@ -647,10 +662,3 @@ class Converger:
         if self._worker is not None:
             self._worker.close()
 
-
-if __name__ == "__main__":
-    # Through the package's module, so that what is sent back pickles under its own name.
-    from h2o_slam.core import converge
-
-    converge._worker_main(Connection(int(sys.argv[1]), writable=False),
-                          Connection(int(sys.argv[2]), readable=False))

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -207,3 +212,39 @@ def test_converge_solves_now_and_clears_the_waiting_edges(city):
     assert not h2o.pending and not h2o.waiting
     assert h2o.solver.chi2(city) == pytest.approx(
         solve_exact(city, iterations=50).chi2_final, rel=1e-6)
+
+
+_CTRL_C_PARENT = """
+import sys, time
+from h2o_slam.core.converge import WorkerProcess
+worker = WorkerProcess(True, None, 3)
+print(worker._process.pid, flush=True)
+try:
+    time.sleep(60)
+except KeyboardInterrupt:
+    pass
+worker.close()
+print("closed, worker alive:", worker.alive, flush=True)
+"""
+
+
+def test_ctrl_c_does_not_print_a_traceback_from_the_worker():
+    """A terminal's Ctrl-C signals the whole foreground process group: the worker stays
+    quiet (its owner stops it), here and when SIGINT is sent to the worker itself."""
+    root = Path(__file__).resolve().parents[2]
+    parent = subprocess.Popen([sys.executable, "-c", _CTRL_C_PARENT], cwd=root,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              start_new_session=True)  # a process group, as a terminal's
+    try:
+        assert parent.stdout is not None
+        worker_pid = int(parent.stdout.readline())
+        time.sleep(3.0)  # the worker has started and waits for work
+        os.killpg(parent.pid, signal.SIGINT)
+        os.kill(worker_pid, signal.SIGINT)
+        out, err = parent.communicate(timeout=30.0)
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert parent.returncode == 0, err
+    assert "closed, worker alive: False" in out
