@@ -274,3 +274,21 @@ def test_robust_gnc_needs_exact_mode(planar_file, tmp_path, capsys):
                         "--robust", "gnc"], capsys)
     assert code == 2
     assert err == ["h2o-solve: --robust gnc applies to --mode exact with --solver h2o only"]
+
+
+def test_budget_inf_is_no_limit(planar_file, tmp_path, capsys):
+    """``--budget-ms inf`` is accepted and solves as no budget does (the default)."""
+    reports = []
+    for extra in ([], ["--budget-ms", "inf"]):
+        report = tmp_path / f"r{len(extra)}.json"
+        code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--mode", "online",
+                            "--idle-s", "0", "--report", str(report), "-q", *extra], capsys)
+        assert code == 0 and err == []
+        # Strict JSON: no budget is null, not Infinity.
+        reports.append(json.loads(report.read_text(), parse_constant=pytest.fail))
+    assert reports[1]["budget_ms"] is None and reports[1]["overruns"] is None
+    assert reports[1]["chi2_final"] == reports[0]["chi2_final"]
+    # Only the budget may be infinite: inf elsewhere still names the finite range.
+    code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--idle-s", "inf"],
+                       capsys)
+    assert code == 2 and len(err) == 1 and "[0, inf)" in err[0], err

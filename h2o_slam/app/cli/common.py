@@ -37,18 +37,24 @@ def usage_error(prog: str, problem: str) -> int:
     return EXIT_USAGE
 
 
-def number(low: float, high: float, low_open: bool = False) -> Callable[[str], float]:
-    """An argparse type: a finite float in ``[low, high]`` (``(low, high]`` if low_open)."""
+def number(low: float, high: float, low_open: bool = False,
+           infinite: bool = False) -> Callable[[str], float]:
+    """An argparse type: a finite float in ``[low, high]`` (``(low, high]`` if low_open);
+    with ``infinite``, ``inf`` too (an upper bound of ``inf`` meaning no limit)."""
+    high_open = math.isinf(high) and not infinite
+
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
             value = math.nan
-        inside = (value > low if low_open else value >= low) and value <= high
-        if not (math.isfinite(value) and inside):
+        inside = (value > low if low_open else value >= low) and (
+            value < high if high_open else value <= high)
+        if not (inside and (math.isfinite(value) or infinite)):
             bracket = "(" if low_open else "["
+            close = ")" if high_open else "]"
             raise argparse.ArgumentTypeError(
-                f"expected a number in {bracket}{low:g}, {high:g}], got {text!r}")
+                f"expected a number in {bracket}{low:g}, {high:g}{close}, got {text!r}")
         return value
     return parse
 

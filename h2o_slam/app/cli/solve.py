@@ -219,7 +219,9 @@ def solve_file(
     lago = opt.solver == "lago"
     online = not lago and opt.mode == "online"
     exact = not lago and opt.mode == "exact"
-    budget = opt.budget_ms
+    # An infinite budget is no budget: reported as null (strict JSON has no Infinity).
+    budget = opt.budget_ms if opt.budget_ms is not None and math.isfinite(opt.budget_ms) \
+        else None
     start_R, start_t = _start(graph, result)
     metrics = {"initial": all_chi2(graph, start_R, start_t),
                "final": all_chi2(graph, result.R, result.t)}
@@ -334,8 +336,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "it has none) or lago (planar graphs); default: tree")
     p.add_argument("--d-max", type=integer(1), default=None,
                    help="most nodes solved for per edge (interpolated solving); default: all")
-    p.add_argument("--budget-ms", type=number(0.0, math.inf, low_open=True), default=None,
-                   help="online mode: time per arriving pose in ms; default: no limit")
+    p.add_argument("--budget-ms", type=number(0.0, math.inf, low_open=True, infinite=True),
+                   default=None,
+                   help="online mode: time per arriving pose in ms; default (and inf): no "
+                        "limit")
     p.add_argument("--gps-batch-size", type=integer(1), default=30,
                    help="GPS edges relaxed together (default 30)")
     p.add_argument("--gps-every", type=integer(0), default=0,
