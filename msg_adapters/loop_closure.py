@@ -3,8 +3,8 @@
 A loop closure is a ``nav_msgs/Odometry`` on the h2o_node's loop-closure topic:
 
 * ``header.frame_id`` names the earlier pose *from*, ``child_frame_id`` the pose *to*.
-  Each is either ``node/<id>`` — a graph node id, a decimal integer ≥ 0 without sign
-  or leading zeros, as in the node's saved g2o file and the index in its PoseArray
+  Each is either ``node/<id>`` — a graph node id, a decimal integer 0 … 2⁶³ − 1 without
+  sign or leading zeros, as in the node's saved g2o file and the index in its PoseArray
   output — or ``stamp/<sec>.<nanosec>`` — the pose at that time, ``nanosec`` written with
   exactly nine digits (``stamp/1700000000.000000042``); the node resolves a stamp to the
   keyframe closest in time (within its tolerance) and rejects it otherwise.
@@ -68,23 +68,40 @@ PoseRef = NodeRef | StampRef
 _NODE = re.compile(r"node/(0|[1-9][0-9]*)")
 _STAMP = re.compile(r"stamp/(0|[1-9][0-9]*)\.([0-9]{9})")
 
+#: Largest graph node id: the solver indexes nodes with int64.
+MAX_NODE_ID = 2**63 - 1
+#: Largest ``sec`` of a stamp reference (``builtin_interfaces/Time`` has int32 seconds).
+MAX_STAMP_SEC = 2**31 - 1
+
+
+def _bounded_int(digits: str, limit: int, field: str, what: str) -> int:
+    """The decimal ``digits`` as an int within ``0 … limit``; the length is checked before
+    converting, since Python refuses to convert more than 4300 digits (a ValueError that
+    would name nothing)."""
+    if len(digits) > len(str(limit)) or int(digits) > limit:
+        shown = digits if len(digits) <= 24 else f"{digits[:12]}…({len(digits)} digits)"
+        raise AdapterError(f"{field}: {what} {shown} is out of range (0 … {limit})")
+    return int(digits)
+
 
 def parse_pose_ref(text: str, field: str = "frame_id") -> PoseRef:
     """``node/<id>`` → :class:`NodeRef`, ``stamp/<sec>.<nanosec>`` → :class:`StampRef`.
 
     Raises:
-        AdapterError: anything else (including surrounding blanks).
+        AdapterError: anything else (including surrounding blanks), and a node id or
+            ``sec`` out of range (beyond :data:`MAX_NODE_ID`, :data:`MAX_STAMP_SEC`), however
+            many digits it has.
     """
     match = _NODE.fullmatch(text)
     if match is not None:
-        return NodeRef(int(match.group(1)))
+        return NodeRef(_bounded_int(match.group(1), MAX_NODE_ID, field, "node id"))
     match = _STAMP.fullmatch(text)
     if match is not None:
-        ns = int(match.group(1)) * NS_PER_S + int(match.group(2))
-        to_stamp(ns)  # in range of builtin_interfaces/Time
-        return StampRef(ns)
+        sec = _bounded_int(match.group(1), MAX_STAMP_SEC, field, "stamp sec")
+        return StampRef(sec * NS_PER_S + int(match.group(2)))
+    shown = repr(text) if len(text) <= 80 else f"{text[:40]!r}…({len(text)} characters)"
     raise AdapterError(
-        f"{field}: {text!r} is not a pose reference (node/<id> or stamp/<sec>.<9-digit nanosec>)"
+        f"{field}: {shown} is not a pose reference (node/<id> or stamp/<sec>.<9-digit nanosec>)"
     )
 
 
@@ -92,6 +109,8 @@ def format_pose_ref(ref: PoseRef) -> str:
     """The text form of a reference (inverse of :func:`parse_pose_ref`)."""
     if isinstance(ref, NodeRef) and ref.node_id < 0:
         raise AdapterError(f"loop closure: negative node id {ref.node_id}")
+    if isinstance(ref, NodeRef) and ref.node_id > MAX_NODE_ID:
+        raise AdapterError(f"loop closure: node id beyond {MAX_NODE_ID}")
     if isinstance(ref, StampRef):
         to_stamp(ref.stamp_ns)
     return str(ref)

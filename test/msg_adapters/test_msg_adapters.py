@@ -320,6 +320,36 @@ def test_malformed_pose_refs(text: str) -> None:
         parse_pose_ref(text)
 
 
+@pytest.mark.parametrize(
+    ("digits", "what"),
+    [
+        ("9" * 4301, "node/"),  # beyond Python's int() limit of 4300 digits
+        ("9" * 25, "node/"),
+        (str(2**63), "node/"),  # one past int64
+        ("1" * 5000, "stamp/"),
+        (str(2**31), "stamp/"),
+    ],
+)
+def test_out_of_range_numbers_in_pose_refs_are_rejected_naming_the_field(
+    digits: str, what: str
+) -> None:
+    text = what + digits + (".000000000" if what == "stamp/" else "")
+    with pytest.raises(InputError, match=r"child_frame_id: (node id|stamp sec) .* out of range"):
+        parse_pose_ref(text, "loop closure child_frame_id")
+    msg = fill_loop_closure(
+        Odometry, make_loop_closure(NodeRef(1), NodeRef(2), np.eye(3), [1, 0, 0], np.eye(6))
+    )
+    msg.header.frame_id = text
+    with pytest.raises(AdapterError, match="header.frame_id: .* out of range"):
+        loop_closure_from_msg(msg)
+
+
+def test_largest_node_id_round_trips() -> None:
+    assert parse_pose_ref(f"node/{2**63 - 1}") == NodeRef(2**63 - 1)
+    with pytest.raises(AdapterError, match="beyond"):
+        format_pose_ref(NodeRef(2**63))
+
+
 @given(st.integers(0, 2**31 * 10**9 - 1))
 def test_stamp_ref_round_trip(ns: int) -> None:
     assert parse_pose_ref(format_pose_ref(StampRef(ns))) == StampRef(ns)
