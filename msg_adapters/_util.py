@@ -63,6 +63,18 @@ def finite_float(value: Any, field: str) -> float:
     return out
 
 
+def variance(sigma: Any, field: str) -> float:
+    """``sigma²`` of a finite standard deviation ``sigma ≥ 0``; refused when the square is
+    not finite (a sigma beyond about 1.3e154 squares to inf)."""
+    value = finite_float(sigma, field)
+    if value < 0.0:
+        raise AdapterError(f"{field}: negative value {value:.6g}")
+    out = value * value
+    if not np.isfinite(out):
+        raise AdapterError(f"{field}: {value:.3g} squared is not a finite variance")
+    return out
+
+
 def covariance(values: Any, n: int, field: str, *, definite: bool = False) -> Array:
     """A validated ``(n, n)`` covariance from a flat row-major array of ``n²`` numbers.
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -141,12 +142,13 @@ def stereo_baseline_m(right: CameraModel) -> float:
     ``−P[0, 3] / P[0, 0]``.
 
     Raises:
-        AdapterError: a baseline that is not positive (e.g. the left camera's info).
+        AdapterError: a baseline that is not positive (e.g. the left camera's info) or not
+            finite.
     """
     baseline = -float(right.P[0, 3]) / float(right.P[0, 0]) + 0.0  # no "-0" in messages
-    if not baseline > 0.0:
+    if not 0.0 < baseline < math.inf:  # inf: a legal P[0, 3] over a subnormal fx
         raise AdapterError(
-            f"CameraInfo.p: right camera baseline {baseline:.6g} m is not positive "
+            f"CameraInfo.p: right camera baseline {baseline:.6g} m is not positive and finite "
             "(P[0, 3] must be −fx·baseline; is this the left camera?)"
         )
     return baseline

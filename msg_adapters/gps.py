@@ -29,6 +29,7 @@ from msg_adapters._util import (
     finite_float,
     new_message,
     set_float_array,
+    variance,
 )
 from msg_adapters.errors import AdapterError
 from msg_adapters.stamps import fill_header, stamp_ns
@@ -150,8 +151,10 @@ class Datum:
         """A covariance ``(3, 3)`` in the ENU frame tangent at ``(lat, lon)``, expressed in
         this datum's ENU frame."""
         m = self._rot @ enu_rotation(lat_deg, lon_deg).T
-        out: Array = m @ cov_enu @ m.T
-        return 0.5 * (out + out.T)
+        with np.errstate(over="ignore", invalid="ignore"):  # entries near 1e308: refused below
+            out: Array = m @ cov_enu @ m.T
+            out = 0.5 * (out + out.T)
+        return finite_array(out, "covariance rotated into the datum's ENU frame")
 
 
 @dataclass(frozen=True, eq=False)
@@ -242,14 +245,16 @@ def gps_fix_from_msg(
     )
     if not sigma_floor_m > 0.0:
         raise AdapterError(f"sigma_floor_m: {sigma_floor_m} must be > 0")
+    floor = variance(sigma_floor_m, "sigma_floor_m")
+    if not max_sigma_m > 0.0:  # NaN would let every fix through
+        raise AdapterError(f"max_sigma_m: {max_sigma_m} must be > 0")
     cov_type = int(msg.position_covariance_type)
     if cov_type == COVARIANCE_TYPE_UNKNOWN:
         if unknown_sigma_m is None:
             raise AdapterError(
                 "NavSatFix.position_covariance_type: UNKNOWN and no default sigma configured"
             )
-        sigma = finite_float(unknown_sigma_m, "unknown_sigma_m")
-        cov = np.eye(3) * sigma**2
+        cov = np.eye(3) * variance(unknown_sigma_m, "unknown_sigma_m")
     elif cov_type == COVARIANCE_TYPE_DIAGONAL_KNOWN:
         full = covariance(msg.position_covariance, 3, "NavSatFix.position_covariance")
         cov = np.diag(np.diag(full))
@@ -264,8 +269,10 @@ def gps_fix_from_msg(
         )
     cov = datum.rotate_covariance(cov, lat, lon)
     eig, vec = np.linalg.eigh(cov)
-    cov = (vec * np.maximum(eig, sigma_floor_m**2)) @ vec.T
-    cov = 0.5 * (cov + cov.T)
+    with np.errstate(over="ignore", invalid="ignore"):  # a floor near 1e154: refused below
+        cov = (vec * np.maximum(eig, floor)) @ vec.T
+        cov = 0.5 * (cov + cov.T)
+    cov = finite_array(cov, "NavSatFix.position_covariance with sigma_floor_m")
     sigma_h = math.sqrt(float(np.linalg.eigvalsh(cov[:2, :2])[-1]))
     if sigma_h > max_sigma_m:
         raise AdapterError(

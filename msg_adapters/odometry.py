@@ -8,13 +8,22 @@ hand an unknown (zero) covariance to the solver.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from h2o_slam.core.geometry import PLANAR_DOF, matrix_to_yaw, yaw_to_matrix
-from msg_adapters._util import Array, covariance, finite_array, new_message, set_float_array
+from msg_adapters._util import (
+    Array,
+    covariance,
+    finite_array,
+    finite_float,
+    new_message,
+    set_float_array,
+    variance,
+)
 from msg_adapters.errors import AdapterError
 from msg_adapters.rotations import QUAT_NORM_TOL, fill_pose, pose_to_matrix
 from msg_adapters.stamps import fill_header, stamp_ns
@@ -149,18 +158,23 @@ def planar_covariance(
     ``z, roll, pitch``.
 
     Raises:
-        AdapterError: a negative, NaN or infinite sigma, or ``|cov_xy| > σx σy``.
+        AdapterError: naming the argument: a negative, NaN or infinite sigma, one whose
+            square overflows (beyond about 1.3e154), or ``|cov_xy| > σx σy``.
     """
-    sig = finite_array((sigma_x_m, sigma_y_m, sigma_yaw_rad), "planar sigma", (3,))
-    if np.any(sig < 0.0):
-        raise AdapterError(f"planar sigma: negative value in {sig.tolist()}")
-    if not np.isfinite(cov_xy) or abs(cov_xy) > sig[0] * sig[1]:
-        raise AdapterError(f"planar covariance: |cov_xy| = {abs(cov_xy):.3g} exceeds σx·σy")
-    if not np.isfinite(unobserved_variance) or unobserved_variance < 0.0:
-        raise AdapterError(f"unobserved_variance: {unobserved_variance} is not a variance")
-    cov = np.diag([0.0, 0.0, unobserved_variance, unobserved_variance, unobserved_variance, 0.0])
-    cov[np.ix_(PLANAR_DOF, PLANAR_DOF)] = np.diag(sig**2)
-    cov[0, 1] = cov[1, 0] = cov_xy
+    var = [variance(value, f"planar_covariance {name}") for value, name in (
+        (sigma_x_m, "sigma_x_m"), (sigma_y_m, "sigma_y_m"), (sigma_yaw_rad, "sigma_yaw_rad"))]
+    xy = finite_float(cov_xy, "planar_covariance cov_xy")
+    # Against the variances as stored (finite, so is their roots' product): the x-y block
+    # stays positive semi-definite even when a tiny σ² underflows to 0.
+    if abs(xy) > math.sqrt(var[0]) * math.sqrt(var[1]):
+        raise AdapterError(f"planar_covariance cov_xy: |cov_xy| = {abs(xy):.3g} exceeds σx·σy")
+    field = "planar_covariance unobserved_variance"
+    unobserved = finite_float(unobserved_variance, field)
+    if unobserved < 0.0:
+        raise AdapterError(f"{field}: {unobserved} is not a variance")
+    cov = np.diag([0.0, 0.0, unobserved, unobserved, unobserved, 0.0])
+    cov[np.ix_(PLANAR_DOF, PLANAR_DOF)] = np.diag(var)
+    cov[0, 1] = cov[1, 0] = xy
     return cov
 
 

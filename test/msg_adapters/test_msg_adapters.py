@@ -272,8 +272,10 @@ def test_planar_helpers() -> None:
         planar_covariance(-0.1, 0.1, 0.1)
     with pytest.raises(AdapterError, match="exceeds σx·σy"):
         planar_covariance(0.1, 0.1, 0.1, cov_xy=0.5)
-    with pytest.raises(AdapterError, match="not a variance"):
+    with pytest.raises(AdapterError, match="unobserved_variance: is nan"):
         planar_covariance(0.1, 0.1, 0.1, unobserved_variance=float("nan"))
+    with pytest.raises(AdapterError, match="unobserved_variance: -1.0 is not a variance"):
+        planar_covariance(0.1, 0.1, 0.1, unobserved_variance=-1.0)
     with pytest.raises(AdapterError, match="planar pose: .*NaN"):
         planar_odometry_sample(5, "odom", "b", float("nan"), 0.0, 0.0, np.eye(3))
 
