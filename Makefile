@@ -11,6 +11,7 @@ PY := $(VENV)/bin/python
 BOOTSTRAP_PYTHON = $(shell command -v python3.11 || command -v python3)
 DEV_STAMP := $(VENV)/.h2o-dev-installed
 BENCH_STAMP := $(VENV)/.h2o-bench-installed
+KERNEL_STAMP := $(VENV)/.h2o-kernels-warm
 OUT := out/demo
 
 # DDS stays on this machine: Fast DDS with the loopback-only profile (shared memory + UDP on
@@ -28,10 +29,10 @@ help:
 	@echo "make test   ruff, mypy and pytest (what CI runs)"
 	@echo "make bench  benchmarks against reference solvers (installs requirements-bench.txt)"
 	@echo "make doc-images  copy the plots of the last make demo (out/demo/*.png) into doc/images/"
-	@echo "make venv   create/update .venv (reruns when a requirements file, setup.py or tools/tf2_msgs changes)"
+	@echo "make venv   create/update .venv (reruns when a requirements file, setup.py or tools/tf2_msgs changes) and compile the solver kernels into the cache"
 	@echo "make clean  remove build/, install/, log/ and out/"
 
-venv: $(DEV_STAMP)
+venv: $(DEV_STAMP) $(KERNEL_STAMP)
 
 # tf2_msgs (TFMessage for /tf) is not on PyPI: tools/build_tf2_msgs.sh generates and compiles
 # it from tools/tf2_msgs with the rosidl generators of the ROS wheels (a few seconds; no-op when
@@ -49,7 +50,14 @@ $(DEV_STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg $(TF2_MSG
 	$(PY) -m pip install --quiet -e .
 	@touch $@
 
-$(BENCH_STAMP): $(DEV_STAMP) requirements-bench.txt
+# The solver's compiled kernels, loaded or compiled into the user's cache now (a minute or
+# more on two cores when the kernel sources changed; a second otherwise), so that no command,
+# node or test compiles on first use.
+$(KERNEL_STAMP): $(DEV_STAMP) $(wildcard h2o_slam/core/*.py)
+	$(PY) -m h2o_slam.core.warmup
+	@touch $@
+
+$(BENCH_STAMP): $(DEV_STAMP) $(KERNEL_STAMP) requirements-bench.txt
 	$(PY) -m pip install --quiet -r requirements-bench.txt
 	@touch $@
 

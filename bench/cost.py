@@ -34,11 +34,11 @@ from results_md import add_graph_arguments, command, publish, results_path, revi
 
 from h2o_slam.core import geometry as geo  # noqa: E402
 from h2o_slam.core import interpolate  # noqa: E402
-from h2o_slam.core.compiled import warm_up  # noqa: E402
 from h2o_slam.core.errors import H2OError  # noqa: E402
 from h2o_slam.core.graph import EdgeKind, PoseGraph  # noqa: E402
 from h2o_slam.core.modes import build_solver, offline_order  # noqa: E402
 from h2o_slam.core.solver import H2OSolver  # noqa: E402
+from h2o_slam.core.warmup import warm_up  # noqa: E402
 from h2o_slam.io.g2o import read_g2o  # noqa: E402
 
 SECTION = "## Cost per constraint (bench/cost.py)"

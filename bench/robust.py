@@ -399,9 +399,9 @@ def run_solver(case: Case, solver: str) -> Outcome:
 
 def _serve(conn: Any) -> None:
     """The worker's loop: a ``(path, kind, count, solver)`` in, an outcome's fields out."""
-    from h2o_slam.core import compiled
+    from h2o_slam.core import warmup
 
-    compiled.warm_up()  # load the kernels now, so that no timed solve pays for it
+    warmup.warm_up()  # load the kernels now, so that no timed solve pays for it
     conn.send("ready")
     while True:
         task = conn.recv()

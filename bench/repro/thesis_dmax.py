@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from h2o_slam.core.compiled import warm_up
 from h2o_slam.core.graph import PoseGraph
+from h2o_slam.core.warmup import warm_up
 from h2o_slam.io.g2o import read_g2o
 from repro.context import Context, verdict
 from repro.thesis_common import Trace, TreeStats, num, offline_trace, table, tree_stats

@@ -8,11 +8,11 @@ import time
 
 import numpy as np
 
-from h2o_slam.core.compiled import warm_up
 from h2o_slam.core.graph import PoseGraph
 from h2o_slam.core.modes import solve_exact, solve_online
 from h2o_slam.core.online import OnlineConfig
 from h2o_slam.core.toro import solve_toro
+from h2o_slam.core.warmup import warm_up
 from h2o_slam.io.g2o import read_g2o
 from h2o_slam.io.synthetic import grid3d, manhattan
 from repro.context import Context, verdict

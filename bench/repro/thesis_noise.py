@@ -13,9 +13,9 @@ import numpy as np
 import solvers
 
 from h2o_slam.core import geometry as geo
-from h2o_slam.core.compiled import warm_up
 from h2o_slam.core.graph import PoseGraph, chi2
 from h2o_slam.core.modes import arrivals, build_solver, solve_exact
+from h2o_slam.core.warmup import warm_up
 from h2o_slam.io.g2o import read_g2o
 from repro.context import Context, verdict
 from repro.thesis_common import num, offline_trace, table

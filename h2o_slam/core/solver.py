@@ -29,7 +29,7 @@ import scipy.sparse.linalg as spla
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core import interpolate
-from h2o_slam.core.compiled import kernel, warm_up
+from h2o_slam.core.compiled import kernel
 from h2o_slam.core.edges import EdgeTable
 from h2o_slam.core.errors import GraphError
 from h2o_slam.core.geometry import Array
@@ -102,7 +102,6 @@ class H2OSolver:
     """
 
     def __init__(self, planar: bool, config: SolverConfig | None = None) -> None:
-        warm_up()  # compiled kernels ready before the first update (once per process)
         self.config = config or SolverConfig()
         self.planar = planar
         self.dof = geo.PLANAR_DOF if planar else np.arange(6)

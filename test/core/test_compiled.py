@@ -4,6 +4,12 @@ differences)."""
 
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 from graphs import random_graph
@@ -11,12 +17,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from h2o_slam.core import compiled, hybrid, interpolate, jacobians, solver
+from h2o_slam.core import compiled, hybrid, interpolate, jacobians, solver, warmup
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.edges import whitening
 from h2o_slam.core.graph import EdgeKind
 from h2o_slam.core.modes import build_solver
-from h2o_slam.core.solver import H2OSolver
 
 #: The kernels Python calls; the ones they call (``so3_exp_into``, ``symmetric_eigen_into``…)
 #: are compiled into them.
@@ -35,8 +40,9 @@ def _signatures() -> list[int]:
     return [len(k.signatures) for k in KERNELS]
 
 
-def test_a_new_solver_has_every_kernel_compiled() -> None:
-    H2OSolver(planar=True)
+def test_the_warm_up_compiles_every_kernel() -> None:
+    warmup.warm_up()
+    assert warmup.is_ready()
     assert all(_signatures()), [k.__name__ for k in KERNELS if not k.signatures]
 
 
@@ -44,7 +50,7 @@ def test_a_new_solver_has_every_kernel_compiled() -> None:
 def test_updates_after_the_warm_up_compile_nothing(planar: bool) -> None:
     """What a node's callbacks run — full, interpolated, guarded and batch updates — finds
     every kernel compiled for its argument types at solver construction."""
-    compiled.warm_up()
+    warmup.warm_up()
     before = _signatures()
     graph = random_graph(7, planar, n=30, loops=8, gps=3, orientation=2)
     s, _ = build_solver(graph)
@@ -192,3 +198,25 @@ def test_long_domain_solve_matches_the_normal_equations() -> None:
     inner = np.eye(p) + Jf @ Binv_Jt
     want = -(Binv_g - Binv_Jt @ np.linalg.solve(inner, Jf @ Binv_g))
     np.testing.assert_allclose(x, want, rtol=1e-8, atol=1e-12)
+
+
+def _cache_path_of_a_copy(root: Path) -> str:
+    """Where a copy of the package at ``root`` caches a kernel, asked in a fresh process."""
+    shutil.copytree(Path(compiled.__file__).parents[1], root / "h2o_slam")
+    code = ("from h2o_slam.core import geometry as g; "
+            "print(g._so3_exp_many._cache._cache_path)")
+    env = dict(os.environ, PYTHONPATH=str(root))
+    env.pop("NUMBA_CACHE_DIR", None)
+    done = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, check=True,
+                          capture_output=True, text=True, timeout=120)
+    return done.stdout.strip()
+
+
+def test_every_install_of_the_same_sources_shares_one_cache(tmp_path: Path) -> None:
+    """A new install tree (a colcon build, a fresh venv) finds the kernels compiled from the
+    same sources elsewhere: numba's own locator keyed the folder by the install path."""
+    first = _cache_path_of_a_copy(tmp_path / "a")
+    second = _cache_path_of_a_copy(tmp_path / "b")
+    assert first == second
+    assert str(tmp_path) not in first
+    assert first.startswith(compiled._cache_dir())

@@ -1,0 +1,111 @@
+"""The warm-up: every compiled kernel loaded (or compiled) with the argument types the
+solver passes, before the first timed update.
+
+From the cache a warm-up takes a few hundred milliseconds; on the first run after the
+kernel sources change it compiles everything, a minute or more on two cores. The package's
+set-up runs it once (``make venv``, ``colcon build``: ``python -m h2o_slam.core.warmup``) so
+that no command or node compiles on first use, and a node runs it beside its executor
+(:func:`warm_up_in_background`) so that it answers while the kernels load.
+
+Not imported by the modules whose kernels it warms, so that they do not import each other in
+a circle.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+
+import numpy as np
+
+from h2o_slam.core import geometry as geo
+from h2o_slam.core.exact import converge_exact
+from h2o_slam.core.graph import EARTH, EdgeKind
+from h2o_slam.core.jacobians import chain_jacobians, endpoint_jacobians
+from h2o_slam.core.solver import H2OSolver
+from h2o_slam.core.tree import PoseTree, spanning_parents
+
+_lock = threading.Lock()
+_started = False
+_ready = threading.Event()
+
+
+def warm_up() -> None:
+    """Load or compile every kernel the solver's update paths use; returns when they are
+    ready. Idempotent; a call while another thread warms up waits for it."""
+    global _started
+    with _lock:
+        first = not _started
+        _started = True
+    if not first:
+        _ready.wait()
+        return
+    try:
+        _run_every_path()
+    finally:
+        _ready.set()  # a failure surfaces again at the kernel's first use, not as a hang
+
+
+def warm_up_in_background() -> threading.Thread | None:
+    """Start :func:`warm_up` in a daemon thread (``None`` when it is already started);
+    :func:`is_ready` says when it is done. numba holds the interpreter lock for much of a
+    compile, so the caller's thread runs slower meanwhile, but it runs."""
+    with _lock:
+        if _started:
+            return None
+    thread = threading.Thread(target=warm_up, name="h2o-warm-up", daemon=True)
+    thread.start()
+    return thread
+
+
+def is_ready() -> bool:
+    """Every kernel is loaded: an update runs at its compiled speed."""
+    return _ready.is_set()
+
+
+def _run_every_path() -> None:
+    """A tiny planar and a tiny 3-D problem through every update path."""
+    geo.so3_exp(np.zeros(3))
+    geo.so3_log(np.eye(3))
+    geo.so3_right_jacobian_inv(np.zeros(3))
+    geo.renormalize(np.eye(3))
+    eye, zero = np.eye(3)[None], np.zeros((1, 3))
+    endpoint_jacobians(np.zeros(1, dtype=np.int64), eye, zero, eye, zero, eye, zero)
+    chain_jacobians(eye, eye, zero, zero[0])
+    for planar in (True, False):
+        solver = H2OSolver(planar)
+        solver.add_pose(np.eye(3), np.zeros(3))
+        step = np.array([1.0, 0.0, 0.0])
+        yaw = geo.yaw_to_matrix(np.array(0.1))
+        for node in range(1, 6):
+            solver.add_edge(EdgeKind.RELATIVE, node - 1, node, yaw, step, np.eye(6))
+        loop = solver.add_edge(EdgeKind.RELATIVE, 0, 5, np.eye(3), step, np.eye(6))
+        gps = solver.add_edge(EdgeKind.POSITION, EARTH, 5, np.eye(3), step, np.eye(6))
+        solver.add_edge(EdgeKind.ORIENTATION, EARTH, 4, np.eye(3), step, np.eye(6))
+        solver.relax(1)
+        solver.relax(loop, guard=True)
+        solver.relax(loop, d_max=2)
+        solver.relax(loop, d_max=2, guard=True)
+        solver.relax_batch([gps])
+        tree = PoseTree.from_parents(solver.tree.parent[: solver.num_nodes],
+                                     *solver.world_poses())
+        tree.tops()
+        tree.world_pose(tree.n - 1)
+        converge_exact(solver, 2)  # the sparse factorization's first uses
+    spanning_parents(2, np.array([0]), np.array([1]))
+
+
+def main() -> int:
+    """``python -m h2o_slam.core.warmup``: compile the kernels into the cache now (the
+    set-up's last step), saying how long it took."""
+    start = time.perf_counter()
+    print("h2o_slam: loading or compiling the solver kernels (a minute or more the first "
+          "time)...", file=sys.stderr, flush=True)
+    warm_up()
+    print(f"h2o_slam: kernels ready in {time.perf_counter() - start:.1f} s", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
