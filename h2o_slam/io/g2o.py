@@ -32,6 +32,10 @@ as information on the rotation-vector error ``Log(R_E)``, as GTSAM's ``readG2o``
 g2o's own ``EdgeSE3`` applies it to the quaternion's vector part, about half the angle,
 so χ² values differ from g2o's by that convention (not from GTSAM's).
 
+An information matrix must be positive semi-definite in the coordinates its edge constrains
+(checked scaled by its largest entry, to 1e-6 of it); an indefinite one is an error, a
+singular one is eigen-clamped as the graph is built (:func:`~h2o_slam.core.graph.make_graph`).
+
 ``FIX id ...`` lines are accepted and ignored: in g2o they anchor the gauge freedom, which
 the solvers of this package fix themselves (earth node / first pose); fixing further poses
 is not part of the model.
@@ -68,6 +72,9 @@ _ALL_ROWS = np.arange(6)
 _MIN_QUAT_NORM = 1e-12
 # How many ulps around atan2 the writer searches for an angle that reproduces R exactly.
 _YAW_ULPS = 4
+# Negative eigenvalues of an information matrix scaled by its largest entry down to this are
+# rounding of a semi-definite matrix written as text (the nodes' covariance tolerance).
+_INFO_PSD_RTOL = 1e-6
 
 
 @dataclass(frozen=True)
@@ -325,6 +332,7 @@ def _build(name: str, planar: bool, groups: dict[str, _Group]) -> PoseGraph:
 
         problems.add_first(~(a_ok & b_ok), e.lines, missing)
         R_v, t_v = _vertex_poses(problems, vertex)
+    _check_semi_definite(problems, e, planar)
     problems.raise_first()
 
     if vertex is not None:
@@ -445,6 +453,37 @@ def _check_param_refs(problems: _Problems, g: _Group, params: _Group | None) -> 
     problems.add_first(
         ~known, g.lines,
         lambda k: f"{g.tag}: parameter {pid[k]} is not defined by a PARAMS_SE3OFFSET line",
+    )
+
+
+def _check_semi_definite(problems: _Problems, e: _Edges, planar: bool) -> None:
+    """Refuse information that is indefinite in the coordinates its edge constrains.
+
+    The solvers would clamp it to a floor, silently trusting a direction the file calls
+    impossible; the nodes refuse such covariances. Semi-definite (singular) matrices pass:
+    they are conditioned as the graph is built. Negative-definite ones are left to the
+    "no positive eigenvalue" check.
+    """
+    dof = _PLANAR_ROWS if planar else _ALL_ROWS
+    low = np.zeros(len(e.kind))
+    high = np.zeros(len(e.kind))
+    negative = np.zeros(len(e.kind), dtype=bool)
+    for k, rows in KIND_ROWS.items():
+        sel = np.flatnonzero(e.kind == k)
+        rows = np.intersect1d(rows, dof)
+        if len(sel):
+            block = e.info[np.ix_(sel, rows, rows)]
+            # Scaled by the largest entry, any finite magnitude is tested scale-free.
+            scale = np.max(np.abs(block), axis=(1, 2))
+            scale[scale == 0.0] = 1.0
+            eig = np.linalg.eigvalsh(block / scale[:, None, None])
+            low[sel], high[sel] = eig[:, 0] * scale, eig[:, -1] * scale
+            # A negative diagonal entry is never rounding of a semi-definite matrix.
+            negative[sel] = (eig[:, 0] < -_INFO_PSD_RTOL) | np.any(
+                np.diagonal(block, axis1=1, axis2=2) < 0.0, axis=1)
+    problems.add_first(
+        negative & (high > 0.0), e.lines, lambda k: "information matrix is indefinite "
+        f"(smallest eigenvalue {low[k]:.3g}, largest {high[k]:.3g})"
     )
 
 

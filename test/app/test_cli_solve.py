@@ -292,3 +292,14 @@ def test_budget_inf_is_no_limit(planar_file, tmp_path, capsys):
     code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--idle-s", "inf"],
                        capsys)
     assert code == 2 and len(err) == 1 and "[0, inf)" in err[0], err
+
+
+def test_indefinite_information_exits_1_naming_file_and_line(tmp_path, capsys):
+    bad = tmp_path / "indefinite.g2o"
+    bad.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n"
+                   "EDGE_SE2 0 1 1 0 0 1 0 0 -1 0 1\n")
+    out = tmp_path / "o.g2o"
+    code, err, _ = run([str(bad), "-o", str(out), "-q"], capsys)
+    assert code == 1 and len(err) == 1, err
+    assert err[0].startswith(f"h2o-solve: {bad}:4: ") and "indefinite" in err[0]
+    assert not out.exists()

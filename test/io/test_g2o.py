@@ -262,6 +262,12 @@ ERROR_CASES = [
      "information matrix has no positive eigenvalue"),
     ([V0, V1, "EDGE_SE2 0 1 1 0 0 0 0 0 0 0 0", E01], 3,
      "information matrix has no positive eigenvalue"),
+    ([V0, V1, E01, "EDGE_SE2 0 1 1 0 0 1e6 0 0 1e6 0 -1"], 4,
+     r"information matrix is indefinite \(smallest eigenvalue -1, largest 1e\+06\)"),
+    ([V0, V1, "EDGE_SE2 0 1 1 0 0 1 2 0 1 0 1", E01], 3, "information matrix is indefinite"),
+    ([V0, V1, E01, "EDGE_PRIOR_SE2_XY 1 0 0 4 0 -0.5"], 4, "information matrix is indefinite"),
+    ([Q0, Q1, f"EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 {INFO6[:-1]}-1"], 3,
+     "information matrix is indefinite"),
     ([V0, E01], 2, "edge uses node 1, which has no VERTEX line"),
     ([V1, E01], 2, "edge uses node 0, which has no VERTEX line"),
     ([V0, V1, E01, "EDGE_PRIOR_SE2_XY 4 0 0 1 0 1"], 4, "node 4, which has no VERTEX"),
@@ -376,3 +382,13 @@ def test_real_posegraphs(name: str) -> None:
     assert np.isfinite(chi2(g))
     # city10000 (1.7 MB, 30k lines) reads in ~0.2 s here; the bound leaves room for slow CI.
     assert elapsed < 2.0
+
+
+def test_semi_definite_information_is_read_and_conditioned(tmp_path: Path) -> None:
+    """Singular but positive semi-definite information (no yaw information; x and y
+    perfectly correlated, written to six digits) is read and eigen-clamped, not refused."""
+    path = write(tmp_path, "\n".join([V0, V1, "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 0",
+                                      "EDGE_SE2 0 1 1 0 0 0.333333 0.333333 0 0.333333 0 1",
+                                      E01]) + "\n")
+    graph = read_g2o(path)
+    np.testing.assert_array_equal(graph.clamped_edges, [0, 1])
