@@ -219,14 +219,14 @@ def test_a_solve_longer_than_a_second_prints_progress(planar_file, tmp_path, cap
                                                       monkeypatch):
     import h2o_slam.app.cli.solve as solve_cli
 
-    real = solve_cli.solve_file
+    real = solve_cli._solve
 
-    def slow(input_path, output_path, options, metric, progress):
+    def slow(graph, opt, passes, progress):
         progress(1, 123.0)
         time.sleep(1.3)
-        return real(input_path, output_path, options, metric, progress)
+        return real(graph, opt, passes, progress)
 
-    monkeypatch.setattr(solve_cli, "solve_file", slow)
+    monkeypatch.setattr(solve_cli, "_solve", slow)
     argv = [str(planar_file), "-o", str(tmp_path / "o.g2o"), "--mode", "offline"]
     code, err, _ = run(argv, capsys)
     assert code == 0 and err and err[0].startswith("h2o-solve: offline: pass 1, chi2 123 ("), err
@@ -303,3 +303,22 @@ def test_indefinite_information_exits_1_naming_file_and_line(tmp_path, capsys):
     assert code == 1 and len(err) == 1, err
     assert err[0].startswith(f"h2o-solve: {bad}:4: ") and "indefinite" in err[0]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("solver", ["h2o", "lago"])
+def test_a_fast_solve_of_a_slowly_read_file_prints_no_progress(planar_file, tmp_path, capsys,
+                                                               monkeypatch, solver):
+    """Reading the file (and writing the result) is not the solve: a fast solve after a slow
+    read prints no progress line."""
+    import h2o_slam.app.cli.solve as solve_cli
+
+    real = solve_cli.read_g2o
+
+    def slow_read(path):
+        time.sleep(1.3)
+        return real(path)
+
+    monkeypatch.setattr(solve_cli, "read_g2o", slow_read)
+    code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--solver", solver],
+                       capsys)
+    assert code == 0 and err == [], err
