@@ -27,7 +27,7 @@ import yaml
 from rosbags.highlevel import AnyReader
 from rosbags.typesys.store import Typestore
 
-from h2o_slam.io.bag_salvage import McapScan, Sqlite3Scan
+from h2o_slam.io.bag_salvage import STORAGE_MAGIC, McapScan, Sqlite3Scan
 from h2o_slam.io.bags import (
     ClosedOnExit,
     RawMessage,
@@ -290,6 +290,73 @@ def read_bag(
     """
     with BagReader(path, topics, required) as bag:
         yield from bag.messages()
+
+
+def bag_problem(path: Path) -> str | None:
+    """Why ``path`` is surely no bag, as ``PATH: reason`` naming the file at fault; ``None``
+    when :class:`BagReader` should try it.
+
+    Cheap, so that a command can refuse before it creates anything: a path holding one
+    ``.mcap``/``.db3`` storage file is left to the reader (which reads the storage alone
+    when ``metadata.yaml`` is unusable, and a damaged file record by record) unless the file
+    is not even its format from the first byte; only what has none is opened here, and
+    refused if ``rosbags`` cannot open it.
+    """
+    meta = path / "metadata.yaml"
+    if not path.exists():
+        return f"{path}: no such file or folder"
+    if path.is_dir() and not any(path.iterdir()):
+        return f"{meta}: no such file (the bag folder is empty)"
+    data = _storage_file(path)
+    if data is not None:
+        return _storage_problem(data)
+    if path.is_file() and path.suffix != ".bag":
+        return (f"{path}: not a bag (expected a rosbag2 folder, or an .mcap, .db3 or ROS 1 "
+                ".bag file)")
+    if path.is_dir() and not meta.is_file():
+        return f"{path}: not a bag (no metadata.yaml and no .mcap or .db3 file)"
+    try:
+        _any_reader(path).close()
+    except Exception as exc:  # rosbags fails in many ways on damaged files
+        if path.is_file():
+            return f"{path}: cannot open bag: {error_reason(exc)}"
+        return f"{meta}: {_metadata_problem(meta, exc)}, and no .mcap or .db3 file to read " \
+            "without it"
+    return None
+
+
+def _storage_problem(data: Path) -> str | None:
+    """Why the storage file ``data`` has nothing to salvage (``PATH: reason``), or ``None``."""
+    magic, kind = STORAGE_MAGIC[data.suffix]
+    try:
+        with data.open("rb") as f:
+            start = f.read(len(magic))
+    except OSError as err:
+        return f"{data}: cannot be read ({err.strerror or err})"
+    if start != magic:
+        return f"{data}: not {kind} (it does not start as one; nothing to read or salvage)"
+    return None
+
+
+def _metadata_problem(meta: Path, exc: Exception) -> str:
+    """What is wrong with a ``metadata.yaml`` that ``rosbags`` refused with ``exc``."""
+    try:
+        data = yaml.safe_load(meta.read_text(encoding="utf-8"))
+    except yaml.MarkedYAMLError as err:
+        line = f"line {err.problem_mark.line + 1}: " if err.problem_mark else ""
+        return f"not YAML ({line}{err.problem or err.context})"
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
+        return f"unreadable ({error_reason(err)})"
+    info = data.get("rosbag2_bagfile_information") if isinstance(data, dict) else None
+    if not isinstance(info, dict):
+        return "not rosbag2 metadata (no rosbag2_bagfile_information)"
+    files = info.get("relative_file_paths")
+    if not isinstance(files, list) or not files:
+        return "not rosbag2 metadata (no relative_file_paths)"
+    missing = [str(name) for name in files if not (meta.parent / str(name)).exists()]
+    if missing:
+        return f"lists {', '.join(missing)}, which {'is' if len(missing) == 1 else 'are'} missing"
+    return f"unusable ({error_reason(exc)})"
 
 
 def _missing(role: str, topic: str | None, present: Mapping[str, str]) -> str:

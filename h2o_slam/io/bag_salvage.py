@@ -29,6 +29,10 @@ from h2o_slam.io.bags import (
 )
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
+_SQLITE_MAGIC = b"SQLite format 3\x00"
+#: What each storage file starts with, and what it is then.
+STORAGE_MAGIC = {".mcap": (_MCAP_MAGIC, "an MCAP file"),
+                 ".db3": (_SQLITE_MAGIC, "an SQLite database")}
 
 
 class McapScan:
@@ -177,7 +181,7 @@ class Sqlite3Scan:
     def _padded(self, path: Path) -> Path:
         with path.open("rb") as f:
             header = f.read(100)
-        if not header.startswith(b"SQLite format 3\x00"):
+        if not header.startswith(_SQLITE_MAGIC):
             raise ReplayError(path, "not an SQLite database")
         page_size = int.from_bytes(header[16:18], "big")
         page_size = 65536 if page_size == 1 else page_size

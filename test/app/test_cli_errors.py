@@ -66,7 +66,8 @@ def test_output_that_cannot_be_a_folder_is_exit_2(main, prog, tmp_path, capsys):
 def test_replay_failure_removes_the_folders_it_created(tmp_path, capsys, monkeypatch):
     bag = tmp_path / "bag"
     bag.mkdir()
-    (bag / "metadata.yaml").write_text("{}")
+    # An MCAP file's start: a storage file the reader is left to try (and fails here).
+    (bag / "bag.mcap").write_bytes(b"\x89MCAP0\r\n")
 
     def fail(options):
         options.output.mkdir(parents=True)

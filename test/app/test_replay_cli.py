@@ -176,7 +176,66 @@ DAMAGED: dict[str, tuple[str, Callable[[Path, Path], Path], str]] = {
     "every odometry message poisoned": ("mcap", _poisoned, r"the graph is empty"),
 }
 # A bag that does not exist (or an empty folder) is refused before DIR is created, so it
-# leaves no folder and no summary: test_cli_errors.py.
+# leaves no folder and no summary: test_cli_errors.py; so is a folder that is no bag:
+
+
+def _folder_with(name: str, content: bytes) -> Callable[[Path, Path], Path]:
+    def make(bag: Path, dst: Path) -> Path:
+        dst.mkdir()
+        (dst / name).write_bytes(content)
+        return dst
+    return make
+
+
+def _without_storage(bag: Path, dst: Path) -> Path:
+    shutil.copytree(bag, dst)
+    storage_file(dst).unlink()
+    return dst
+
+
+def _garbage_storage(bag: Path, dst: Path) -> Path:
+    shutil.copytree(bag, dst)
+    storage_file(dst).write_bytes(random.Random(4).randbytes(4096))
+    return dst
+
+
+def _a_text_file(bag: Path, dst: Path) -> Path:
+    dst.mkdir()
+    (dst / "notes.txt").write_text("hello")
+    return dst / "notes.txt"
+
+
+#: name: (make the path from a good bag, where the line starts, what it says)
+NO_BAG: dict[str, tuple[Callable[[Path, Path], Path], str, str]] = {
+    "a random file": (_folder_with("data.bin", random.Random(3).randbytes(300)), "",
+                      r"not a bag \(no metadata\.yaml and no \.mcap or \.db3 file\)"),
+    "a .txt file": (_folder_with("notes.txt", b"hello"), "", r"not a bag \(no metadata\.yaml"),
+    "metadata.yaml not YAML": (_folder_with("metadata.yaml", b"{{{: [\n"), "/metadata.yaml",
+                               r"not YAML \(line \d+: .*\), and no \.mcap or \.db3 file"),
+    "metadata.yaml not a bag's": (_folder_with("metadata.yaml", b"{}"), "/metadata.yaml",
+                                  r"not rosbag2 metadata \(no rosbag2_bagfile_information\)"),
+    "metadata.yaml without its storage": (_without_storage, "/metadata.yaml",
+                                          r"lists mcap\.mcap, which is missing"),
+    "a text file as the bag": (_a_text_file, "", r"not a bag \(expected a rosbag2 folder"),
+    "storage garbled from its first byte": (_garbage_storage, "/mcap.mcap",
+                                            r"not an MCAP file \(it does not start as one"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(NO_BAG))
+def test_no_bag_is_one_line_exit_1_and_creates_nothing(
+        name: str, bags: dict[str, Path], tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    import re
+
+    make, tail, reason = NO_BAG[name]
+    bag = make(bags["mcap"], tmp_path / "bag")
+    out = tmp_path / "deep" / "out"
+    code, err = run([str(bag), "--output", str(out), "--quiet"], capsys)
+    assert code == 1 and len(err) == 1, err
+    assert err[0].startswith(f"h2o-replay: {bag}{tail}: ") and re.search(reason, err[0]), err
+    assert "Error)" not in err[0], err  # the reason is ours, not an exception's text
+    assert not (tmp_path / "deep").exists()
 
 
 def replay_damaged(name: str, bags: dict[str, Path], tmp_path: Path,

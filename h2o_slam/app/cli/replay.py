@@ -27,6 +27,7 @@ from h2o_slam.app.cli.common import (
 )
 from h2o_slam.app.replay import ReplayOptions, format_summary, publish_realtime, replay
 from h2o_slam.core.errors import H2OError
+from h2o_slam.io.bag_reader import bag_problem
 from h2o_slam.io.topic_map import topic_map
 from h2o_slam.ros.h2o_node import PARAMETERS
 
@@ -81,16 +82,6 @@ def parser() -> argparse.ArgumentParser:
                    help="--realtime: seconds between creating the publishers and the first "
                         "message, for subscribers to match them")
     return p
-
-
-def bag_problem(bag: Path) -> str | None:
-    """Why ``bag`` is surely no bag (missing, or an empty folder), naming the file a reader
-    looks for; ``None`` when a reader should try it."""
-    if not bag.exists():
-        return f"{bag}: no such file or folder"
-    if bag.is_dir() and not any(bag.iterdir()):
-        return f"{bag / 'metadata.yaml'}: no such file (the bag folder is empty)"
-    return None
 
 
 def main(argv: list[str] | None = None) -> int:
