@@ -61,8 +61,8 @@ setup(
     entry_points={
         "console_scripts": [
             "h2o-solve = h2o_slam.app.cli.solve:main",
-            "h2o_node = h2o_slam.ros.h2o_node:main",
-            "hybrid_vo_node = hybrid_vo.vo_node:main",
+            "h2o_node = h2o_slam.app.cli.nodes:h2o_node",
+            "hybrid_vo_node = h2o_slam.app.cli.nodes:hybrid_vo_node",
             "h2o-replay = h2o_slam.app.cli.replay:main",
             "h2o-demo = h2o_slam.app.cli.demo:main",
         ],

@@ -39,7 +39,7 @@ from h2o_slam.core.graph import EARTH, EdgeKind
 from h2o_slam.core.robust import RobustConfig
 from h2o_slam.core.solver import H2OSolver, SolverConfig
 from h2o_slam.core.timing import CostModel, UpdateCost
-from h2o_slam.core.warmup import warm_up
+from h2o_slam.core.warmup import ensure_warm_up
 
 
 @dataclass(frozen=True)
@@ -165,9 +165,9 @@ class OnlineH2O:
         self, planar: bool, config: SolverConfig | None = None,
         online: OnlineConfig | None = None,
     ) -> None:
-        # Budgeted callbacks must not pay for loading kernels: all of them now (a node
-        # starts this beside its executor first, and this then waits for it).
-        warm_up()
+        # Budgeted callbacks must not pay for loading kernels: all of them now, unless a
+        # node is loading them beside its executor (it holds its inputs until they are).
+        ensure_warm_up()
         self.solver = H2OSolver(planar, config)
         self.online = online or OnlineConfig()
         self.cost = UpdateCost()

@@ -47,6 +47,16 @@ def warm_up() -> None:
         _ready.set()  # a failure surfaces again at the kernel's first use, not as a hang
 
 
+def ensure_warm_up() -> None:
+    """:func:`warm_up` now, unless one is already under way or done: a node warms up in the
+    background (:func:`warm_up_in_background`) and holds its inputs until :func:`is_ready`,
+    so the solver it builds meanwhile must not wait for it."""
+    with _lock:
+        if _started:
+            return
+    warm_up()
+
+
 def warm_up_in_background() -> threading.Thread | None:
     """Start :func:`warm_up` in a daemon thread (``None`` when it is already started);
     :func:`is_ready` says when it is done. numba holds the interpreter lock for much of a

@@ -22,6 +22,8 @@ def run_node(make: Callable[[], Node], name: str,
         except start_errors as exc:
             print(f"{name}: {exc}", file=sys.stderr)
             return 1
+        except KeyboardInterrupt:  # Ctrl-C while starting: a normal stop, no traceback
+            return 0
         try:
             rclpy.spin(node)
         except (KeyboardInterrupt, ExternalShutdownException):

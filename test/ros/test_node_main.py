@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import time
+
 import pytest
 import rclpy
 from rclpy.node import Node
@@ -42,3 +48,26 @@ def test_a_callback_failing_while_running_still_fails() -> None:
     with pytest.raises(RuntimeError, match="a real bug"):
         run_node(FailsInCallback, "test", (), [])
     assert not rclpy.ok()
+
+
+@pytest.mark.parametrize("delay_s", [0.0, 0.3, 0.8, 2.0])
+def test_ctrl_c_at_any_instant_of_the_start_is_a_quiet_stop(delay_s: float) -> None:
+    """SIGINT to the process group, as a terminal sends it, while the node still imports
+    or builds itself: exit 0, no traceback (it used to print the import it interrupted).
+    The clock starts when the entry point is called (the interpreter's own start-up, before
+    any of the package's code runs, is Python's)."""
+    code = ("import sys; from h2o_slam.app.cli import nodes; print('entered', flush=True); "
+            "sys.exit(nodes.h2o_node())")
+    proc = subprocess.Popen([sys.executable, "-c", code, "--ros-args", "-r",
+                             f"__ns:=/sigint{os.getpid()}"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "entered"
+    time.sleep(delay_s)
+    os.killpg(proc.pid, signal.SIGINT)
+    try:
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err, err
