@@ -53,7 +53,10 @@ from h2o_slam.io.bag_reader import BagMessage, BagReader, BagStats
 from h2o_slam.io.bag_writer import BagWriter
 from h2o_slam.io.bags import ReplayError, Storage, jazzy_typestore
 from h2o_slam.io.plots import (
+    Chi2Trace,
     NodeCallbacks,
+    chi2_dof,
+    chi2_trace,
     node_callbacks,
     plot_callback_times,
     plot_chi2,
@@ -161,7 +164,8 @@ class Replay:
         self.vo_calls: list[tuple[float, float, str]] = []
         self._h2o_total_ms = 0.0
         self._vo_frames = 0
-        self.chi2_trace: list[tuple[float, float]] = []
+        # (bag time s, χ², its degrees of freedom) of the graph every graph period: chi2.png.
+        self.chi2_trace: list[tuple[float, float, int]] = []
         self.now_ns = 0
         self.start_ns: int | None = None
         self.context = Context()
@@ -291,7 +295,9 @@ class Replay:
         h2o = self._h2o()
         h2o.publish_graph()
         chi2 = h2o.mapper.chi2()
-        self.chi2_trace.append(((now_ns - (self.start_ns or now_ns)) / NS, chi2))
+        solver = h2o.mapper.h2o.solver
+        dof = chi2_dof(solver.kind, solver.b, solver.weight, solver.num_nodes, solver.planar)
+        self.chi2_trace.append(((now_ns - (self.start_ns or now_ns)) / NS, chi2, dof))
 
     def _publish_diagnostics(self, now_ns: int) -> None:
         self._h2o().publish_diagnostics()
@@ -419,11 +425,20 @@ class Replay:
                           stamps_ns={k: v[0] for k, v in drawn.items()})
         plot_callback_times(out / "callback_times.png", self.callback_panels())
         if self.chi2_trace:
-            trace = np.asarray(self.chi2_trace)
-            plot_chi2(out / "chi2.png", {"H₂O graph": (trace[:, 0], trace[:, 1])})
+            plot_chi2(out / "chi2.png", {"H₂O graph": self.chi2_samples()})
         summary = self._summary(reader, tracks, wall_s, error, files)
         write_summary(out / "summary.json", summary)
         return summary
+
+    def chi2_samples(self) -> Chi2Trace:
+        """What chi2.png shows: the graph's χ² and its degrees of freedom over bag time, and
+        what the graph holds at the end."""
+        mapper = self._h2o().mapper
+        held = mapper.decisions() if mapper.num_nodes else {}
+        closures, fixes = held.get("loop_closures in", 0), held.get("gps_fixes in", 0)
+        holds = ", ".join(["odometry", f"{closures} loop closure{'s' * (closures != 1)}"]
+                          + ([f"{fixes} GPS fixes"] if fixes else []))
+        return chi2_trace(self.chi2_trace, holds=holds)
 
     def callback_panels(self) -> dict[str, NodeCallbacks]:
         """What callback_times.png shows: each node's callbacks against bag time."""

@@ -14,7 +14,7 @@ import msg_adapters as ma
 from h2o_slam.app.cli import replay as replay_cli
 from h2o_slam.app.cli.demo import PLOTS
 from h2o_slam.app.cli.demo import run as run_demo
-from h2o_slam.app.replay import ReplayOptions, replay
+from h2o_slam.app.replay import Replay, ReplayOptions, replay
 from h2o_slam.io.bag_reader import BagReader
 from h2o_slam.io.bag_writer import write_bag
 from h2o_slam.io.replay_outputs import read_tum
@@ -125,6 +125,23 @@ def test_demo_h2o_with_gps_beats_hybrid_vo_which_beats_wheels(tmp_path: Path) ->
         for name in PLOTS:  # the demo's own three, of both runs; each replay's three
             blob = (folder / name).read_bytes()
             assert blob[:8] == PNG_MAGIC and len(blob) > 20_000, folder / name
+
+
+def test_chi2_samples_carry_each_graphs_degrees_of_freedom(bags: dict[str, Path],
+                                                           tmp_path: Path) -> None:
+    run = Replay(ReplayOptions(bag=bags["mcap"], output=tmp_path / "out", progress=False))
+    summary = run.run()
+    samples = run.chi2_samples()  # what chi2.png draws: χ² per degree of freedom
+    assert len(samples.stamps_s) == len(samples.chi2) == len(samples.dof) >= 3
+    assert samples.chi2[-1] == summary["graph"]["chi2"]
+    # The odometry chain is a tree (no DOF); each closure adds 3, each GPS fix (x, y) 2, less
+    # the map's pose (3), which the fixes pin.
+    held = run.h2o.mapper.decisions() if run.h2o else {}
+    fixes = held["gps_fixes in"] + held["gps_fixes down-weighted"]
+    closures = held["loop_closures in"] + held["loop_closures down-weighted"]
+    assert fixes > 10 and samples.dof[-1] == 2 * fixes + 3 * closures - 3
+    assert samples.holds.startswith("odometry, ")
+    assert samples.holds.endswith(f", {held['gps_fixes in']} GPS fixes")
 
 
 def test_realtime_publishes_the_bag_on_the_ros_graph(bags: dict[str, Path]) -> None:

@@ -24,8 +24,6 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from h2o_slam.app.cli.common import (
     EXIT_INPUT,
     OneLineParser,
@@ -123,10 +121,9 @@ def write_plots(output: Path, runs: dict[str, Replay]) -> None:
                       gps_enu=graph.meas_t[graph.kind == EdgeKind.POSITION],
                       title="h2o-demo: the simulated drive (final graphs)",
                       stamps_ns={k: v[0] for k, v in tracks.items()})
-    chi2 = {f"H₂O {name}": np.asarray(run.chi2_trace) for name, run in runs.items()
-            if run.chi2_trace}
-    plot_chi2(output / PLOTS[1], {k: (v[:, 0], v[:, 1]) for k, v in chi2.items()},
-              title="h2o-demo: χ² of the graph over bag time")
+    plot_chi2(output / PLOTS[1], {f"H₂O {name}": run.chi2_samples()
+                                  for name, run in runs.items() if run.chi2_trace},
+              title="h2o-demo: χ² per degree of freedom of each graph over bag time")
     plot_callback_times(output / PLOTS[2], runs["with GPS"].callback_panels(),
                         title="h2o-demo: time per callback (replay with GPS, one process)")
 
