@@ -374,8 +374,12 @@ def _held_places(solver: H2OSolver, inside: np.ndarray, c2: Array) -> list[np.nd
     the others hold it (measured on intel with a group of 10: two accepted, deletion χ²
     0.93 and 0.34 ``c̄²`` each, 4.6 times the pair's summed ``c̄²`` together, where the next
     place is at 0.15; on MIT, ten accepted at 1.05 times, the next at 0.14)."""
-    places = [g for g in _clusters(solver.a[inside], solver.b[inside],
-                                   np.zeros(len(inside))) if len(g) > 1]
+    # Loop closures only: GPS fixes share no place (their first end is the earth), and a
+    # run of jumped fixes is the GPS gate's to hold.
+    closures = np.flatnonzero(solver.kind[inside] == EdgeKind.RELATIVE)
+    places = [closures[g] for g in _clusters(solver.a[inside[closures]],
+                                             solver.b[inside[closures]],
+                                             np.zeros(len(closures))) if len(g) > 1]
     if not places:
         return []
     joint = group_chi2(solver, [inside[g] for g in places], sign=-1.0)
