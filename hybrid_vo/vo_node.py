@@ -5,8 +5,10 @@ parameters, subscriptions, publishing. Message layouts stay in :mod:`msg_adapter
 
 Inputs (relative names, remappable): ``left/image_rect``, ``right/image_rect``
 (``sensor_msgs/Image``, or ``CompressedImage`` on ``.../compressed`` with
-``use_compressed``; sensor-data QoS), ``left/camera_info``, ``right/camera_info``
-(sensor-data QoS) and wheel ``odom`` (``nav_msgs/Odometry``, reliable).
+``use_compressed``; best effort), ``left/camera_info``, ``right/camera_info`` (best effort)
+and wheel ``odom`` (``nav_msgs/Odometry``, reliable), queues :data:`CAMERA_QUEUE_DEPTH` and
+:data:`ODOM_QUEUE_DEPTH` deep. What became of each input's messages is counted
+(:mod:`h2o_slam.ros.inputs`).
 
 Outputs: ``odometry/hybrid`` (``nav_msgs/Odometry``, ``odom_frame`` → ``base_frame``),
 ``/tf`` (``odom_frame`` → ``base_frame``, with ``publish_tf``), ``~/debug_image`` (mono8
@@ -41,13 +43,14 @@ from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_srvs.srv import SetBool, Trigger
 
 import msg_adapters as ma
 from h2o_slam.core.errors import InputError
 from h2o_slam.ros.boundary import behind_boundary
+from h2o_slam.ros.inputs import InputCounts, counted_subscription
 from h2o_slam.ros.node_main import run_node
 from hybrid_vo.errors import HybridVOError
 from hybrid_vo.frontend import (
@@ -66,6 +69,13 @@ NODE_NAME = "hybrid_vo_node"
 #: Seconds between two log lines about the same problem.
 LOG_THROTTLE_S = 5.0
 NS_PER_S = 1_000_000_000
+#: Queue depth of the wheel odometry (reliable): 10 s at 100 Hz, what a stall of the node
+#: (a slow first frame) leaves waiting; every sample is needed for the track.
+ODOM_QUEUE_DEPTH = 1000
+#: Queue depth of the images and camera infos (best effort): a second of frames at 10 Hz.
+#: Deeper would only add latency and memory: a frame lost costs vision for that frame, the
+#: wheels carry it; every loss is counted (input.<topic>.dropped).
+CAMERA_QUEUE_DEPTH = 10
 
 Sink = Callable[[str, Any], None]
 
@@ -238,12 +248,15 @@ class HybridVoNode(Node):
         self._silent_ticks = 0
         self._warned: dict[str, float] = {}
         self.tf_skipped = 0
+        #: What became of each input's messages (h2o_slam.ros.inputs), by source key.
+        self.inputs: dict[str, InputCounts] = {}
         self._subscribe(bool(p["use_compressed"]))
         self._advertise()
         self.create_service(Trigger, "~/reset", self._boundary("reset", self._on_reset))
         self.create_service(SetBool, "~/pause", self._boundary("pause", self._on_pause))
         self.create_timer(float(p["diagnostics_period"]),
                           self._boundary("diagnostics_timer", self._on_timer))
+        self._diagnose = self._boundary("diagnostics", self._maybe_diagnostics)
 
     # ------------------------------------------------------------------ set-up
 
@@ -256,12 +269,12 @@ class HybridVoNode(Node):
 
     def _subscribe(self, compressed: bool) -> None:
         image_type, suffix = (CompressedImage, "/compressed") if compressed else (Image, "")
-        sensor = qos_profile_sensor_data
+        sensor = QoSProfile(depth=CAMERA_QUEUE_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT)
         # The executor serves ready subscriptions in creation order: wheel odometry and
         # camera info first, so that a frame finds what it needs when all arrive at once.
         specs = (
             # Wheel odometry drivers publish reliably; one lost sample would leave a gap.
-            ("odom", Odometry, "odom", self.on_wheel_odom, QoSProfile(depth=100)),
+            ("odom", Odometry, "odom", self.on_wheel_odom, QoSProfile(depth=ODOM_QUEUE_DEPTH)),
             ("left_info", CameraInfo, "left/camera_info", self.on_left_info, sensor),
             ("right_info", CameraInfo, "right/camera_info", self.on_right_info, sensor),
             ("left_image", image_type, f"left/image_rect{suffix}", self.on_left_image, sensor),
@@ -269,7 +282,8 @@ class HybridVoNode(Node):
         )
         self.input_topics: dict[str, str] = {}
         for key, msg_type, topic, callback, qos in specs:
-            sub = self.create_subscription(msg_type, topic, callback, qos)
+            self.inputs[key] = InputCounts()
+            sub = counted_subscription(self, self.inputs[key], msg_type, topic, callback, qos)
             self.input_topics[key] = sub.topic_name
         partners = {"left_image": "right_image", "right_image": "left_image"}
         for key, topic in self.input_topics.items():
@@ -331,9 +345,12 @@ class HybridVoNode(Node):
         self._inputs_since_tick += 1
         try:
             handler(*args)
-            self._maybe_diagnostics()
         except Exception as exc:  # the boundary: no message ends the node (issue 13)
+            self.inputs[source].rejected += 1
             self._count_rejection(source, exc)
+            return
+        self.inputs[source].accepted += 1
+        self._diagnose()
 
     def _count_rejection(self, source: str, exc: Exception) -> None:
         """Log and count a refused input (or a failed timer or service) by reason."""
@@ -370,9 +387,19 @@ class HybridVoNode(Node):
                              strict=True)
         self._last_image_ns[side] = stamp
         self._note(f"{SIDE_NAMES[side]}_image", stamp)
+        unpaired = list(self.sync.stats.dropped)
         pair = self.sync.add(side, stamp, msg)
+        self._discard_unpaired(unpaired)
         if pair is not None:
             self._stereo(pair.stamp_ns, pair.left, pair.right)
+
+    def _discard_unpaired(self, before: list[int]) -> None:
+        """Images the synchronizer dropped unpaired since its counts were ``before``: taken
+        in earlier (accepted), dropped now."""
+        for s in (LEFT, RIGHT):
+            count = self.sync.stats.dropped[s] - before[s]
+            if count:
+                self.inputs[f"{SIDE_NAMES[s]}_image"].move("discarded", count)
 
     def _stereo(self, stamp_ns: int, left_msg: Any, right_msg: Any) -> None:
         odometer = self.frontend.odometer
@@ -388,6 +415,7 @@ class HybridVoNode(Node):
             except ma.AdapterError as exc:
                 reason = reason_key(source, exc)
                 self.frontend.count_rejection(reason, str(exc))
+                self.inputs[source].move("rejected")  # taken in when it arrived
                 self._warn(reason, f"{self.input_topics[source]}: rejected: {exc}")
                 self._publish(self.frontend.add_frame(stamp_ns, None, None, BAD_IMAGE))
                 return
@@ -531,6 +559,8 @@ class HybridVoNode(Node):
             "dropped_paused": st.dropped_paused,
             "tf_skipped": self.tf_skipped,
         }
+        for key, counts in self.inputs.items():
+            values.update(counts.values(f"input.{key}."))
         values.update({f"fallback.{k}": v for k, v in sorted(st.fallbacks.items())})
         values.update({f"rejected.{k}": v for k, v in sorted(st.rejected.items())})
         message = "; ".join(problems) if problems else (
@@ -558,6 +588,8 @@ class HybridVoNode(Node):
     def reset(self) -> None:
         """Restart odometry at the origin of ``odom``; calibration and counters are kept."""
         self.frontend.reset()
+        for side in (LEFT, RIGHT):  # images waiting for a partner are dropped
+            self.inputs[f"{SIDE_NAMES[side]}_image"].move("discarded", self.sync.queued(side))
         self.sync.clear()
         self.monitor.reset()
         self._last_image_ns = [None, None]

@@ -34,6 +34,7 @@ from rcl_interfaces.msg import ParameterType
 from rcl_interfaces.srv import SetParameters
 from rclpy.context import Context
 from rclpy.parameter import Parameter
+from rclpy.subscription import Subscription
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix
 from std_srvs.srv import SetBool, Trigger
 
@@ -279,8 +280,13 @@ class NodeDriver:
             return None
 
     def deliver(self, key: str, msg: Any) -> None:
-        """A message on the subscription ``key`` (topic suffix)."""
-        self.call(key, self.subs[key].callback, msg)
+        """A message on the subscription ``key`` (topic suffix); a callback that takes the
+        message info gets one, as from a publisher that loses nothing."""
+        sub = self.subs[key]
+        if sub._callback_type is Subscription.CallbackType.WithMessageInfo:
+            self.call(key, sub.callback, msg, {"publication_sequence_number": None})
+        else:
+            self.call(key, sub.callback, msg)
 
     def tick(self, index: int) -> None:
         """Fire one of the node's timers."""

@@ -134,6 +134,11 @@ class InputHealth:
         n = min(self._seen, len(self._intervals))
         return int(np.mean(self._intervals[:n]))
 
+    def restart(self) -> None:
+        """Judge no gap before the next message: the node ignored those in between on
+        purpose (while paused) and counted them itself."""
+        self._last_stamp_ns = None
+
     def observe(self, stamp_ns: int, handled_ns: int) -> None:
         """One message with stamp ``stamp_ns``, handled at ``handled_ns``."""
         self.received += 1

@@ -57,10 +57,14 @@ from h2o_slam.core.errors import H2OError, InputError
 from h2o_slam.core.graph import EdgeKind, edge_chi2
 from h2o_slam.core.timing import CallbackTimes, CostShare, InputHealth
 from h2o_slam.ros.boundary import behind_boundary
+from h2o_slam.ros.inputs import InputCounts, counted_subscription
 from h2o_slam.ros.mapper import Mapper, MapperConfig, restore
 from h2o_slam.ros.node_main import run_node
 
 NODE_NAME = "h2o_node"
+
+#: The inputs, as /diagnostics names them.
+INPUTS = ("odometry", "loop_closure", "gps")
 
 #: Numbers in rejection reasons, replaced so that one reason is one diagnostics key.
 _NUMBER = re.compile(r"[-+]?\d[\d.]*(e[-+]?\d+)?")
@@ -115,7 +119,10 @@ PARAMETERS: list[tuple[str, Any, str, tuple[float, float] | None]] = [
      (0.0, 10.0)),
     ("map_file", "", "g2o file for the save service and for load_map_on_start.", None),
     ("load_map_on_start", False, "Continue the graph saved in map_file.", None),
-    ("input_queue_depth", 200, "Subscription queue depth of each input.", (1, 100_000)),
+    ("input_queue_depth", 1000, "Subscription queue depth of the odometry and GPS inputs "
+     "(10 s of odometry at 100 Hz: what a stall of the node leaves waiting).", (1, 100_000)),
+    ("loop_closure_queue_depth", 10000, "Subscription queue depth of the loop-closure input "
+     "(a detector catching up after a revisit sends thousands at once).", (1, 1_000_000)),
     ("idle_budget_ms", 10.0, "Solver time of an idle step, for edges that did not fit into "
      "the input callbacks' budget; 0 disables (run-time).", (0.0, 1000.0)),
     ("idle_period", 0.05, "Seconds between idle steps; they run only while edges wait.",
@@ -168,6 +175,8 @@ class H2ONode(Node):
         self.times = CallbackTimes()
         self.idle_times = CallbackTimes()
         self.rejected: Counter[str] = Counter()
+        #: What became of each input's messages (h2o_slam.ros.inputs).
+        self.inputs = {what: InputCounts() for what in INPUTS}
         self._last_gps_ns: int | None = None
         self._last_stamp_ns = 0
         self._graph_dirty = True
@@ -284,12 +293,18 @@ class H2ONode(Node):
     def _make_interfaces(self) -> None:
         depth = int(self.p("input_queue_depth"))
         sensor = QoSProfile(depth=depth, reliability=ReliabilityPolicy.BEST_EFFORT)
-        reliable = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+        reliable = QoSProfile(depth=int(self.p("loop_closure_queue_depth")),
+                              reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.create_subscription(Odometry, "odom", self.on_odom, sensor)
-        self.create_subscription(Odometry, "loop_closure", self.on_loop_closure, reliable)
-        self.create_subscription(NavSatFix, "gps/fix", self.on_gps, sensor)
+        specs = (("odometry", Odometry, "odom", self.on_odom, sensor),
+                 ("loop_closure", Odometry, "loop_closure", self.on_loop_closure, reliable),
+                 ("gps", NavSatFix, "gps/fix", self.on_gps, sensor))
+        #: Resolved topic of each input.
+        self.input_topics = {
+            what: counted_subscription(self, self.inputs[what], msg_type, topic, callback,
+                                       qos).topic_name
+            for what, msg_type, topic, callback, qos in specs}
         self.publishers_by_key = {
             "poses": self.create_publisher(PoseArray, "~/graph/poses", latched),
             "path": self.create_publisher(PathMsg, "~/graph/path", latched),
@@ -342,17 +357,23 @@ class H2ONode(Node):
         input leaves nothing behind in the track or the graph."""
         start = time.perf_counter()
         counted = sum(self.mapper.rejected.values())
+        counts = self.inputs[what]
         try:
-            if not self.paused:
+            if self.paused:
+                counts.discarded += 1
+            else:
                 handler()
+                counts.accepted += 1
         except Exception as exc:  # the boundary: no message ends the node (issue 13)
+            counts.rejected += 1
             if isinstance(exc, H2OError) and sum(self.mapper.rejected.values()) != counted:
                 # the mapper counted it under its own reason
                 self.get_logger().warning(f"{what} rejected: {exc}", throttle_duration_sec=1.0)
             else:
                 self._count_rejection(what, exc)
-        for reason in self.mapper.released_errors:
-            self.get_logger().warning(f"held input rejected: {reason}",
+        for held, reason in self.mapper.released_errors:  # taken in earlier, refused now
+            self.inputs[held].move("rejected")
+            self.get_logger().warning(f"held {held} rejected: {reason}",
                                       throttle_duration_sec=1.0)
         self.mapper.released_errors.clear()
         elapsed_ms = 1e3 * (time.perf_counter() - start)
@@ -388,6 +409,7 @@ class H2ONode(Node):
         """Count the messages of ``what`` missing before this one, and whether it is late."""
         now = time.monotonic_ns()
         self.health[what].observe(stamp_ns, now)
+        self.inputs[what].lost_in_stamps = self.health[what].dropped
         if what == "odometry":
             self._last_odom_handled_ns = now
 
@@ -592,6 +614,8 @@ class H2ONode(Node):
             values[f"dropped {what}"] = health.dropped
             values[f"late {what}"] = health.late
             values[f"lag_max_ms {what}"] = health.max_lag_ms
+        for what, counts in self.inputs.items():
+            values.update(counts.values(f"input {what} "))
         values["idle_yielded"] = self.idle_yielded
         values["graph_publications"] = self.shares["graph"].runs
         values["graph_publish_ms"] = 1e3 * self.shares["graph"].last_cost_s
@@ -670,6 +694,8 @@ class H2ONode(Node):
         self._datum = self._configured_datum()
         self._last_gps_ns = None
         self.rejected.clear()
+        for counts in self.inputs.values():
+            counts.reset()
         self.times = CallbackTimes()
         self.idle_times = CallbackTimes()
         self._reset_load_state()
@@ -678,6 +704,9 @@ class H2ONode(Node):
         return response
 
     def _srv_pause(self, request: Any, response: Any) -> Any:
+        if self.paused and not request.data:
+            for health in self.health.values():
+                health.restart()  # the messages ignored meanwhile are counted as dropped
         self.paused = bool(request.data)
         response.success = True
         response.message = "paused" if self.paused else "running"

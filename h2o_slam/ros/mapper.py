@@ -248,10 +248,11 @@ class Mapper:
         self.continue_from: int | None = None
         self.last_report = StepReport()
         # Loop closures and fixes stamped after the newest odometry wait for it (messages
-        # on different topics arrive in any order): (stamp needed, retry).
-        self.held: list[tuple[int, Callable[[], object]]] = []
-        #: Reasons for held inputs that were refused when retried (for the node to log).
-        self.released_errors: list[str] = []
+        # on different topics arrive in any order): (stamp needed, input, retry).
+        self.held: list[tuple[int, str, Callable[[], object]]] = []
+        #: Held inputs refused when retried or dropped: (input, reason), for the node to log
+        #: and count (``"loop_closure"`` or ``"gps"``).
+        self.released_errors: list[tuple[str, str]] = []
 
     # -- inputs -------------------------------------------------------------------------------
 
@@ -285,16 +286,17 @@ class Mapper:
         self._release_held(stamp_ns)
         return node
 
-    def _hold(self, needed_ns: int, retry: Callable[[], object]) -> bool:
-        """Hold an input until odometry reaches ``needed_ns``; returns whether it was held."""
+    def _hold(self, needed_ns: int, what: str, retry: Callable[[], object]) -> bool:
+        """Hold input ``what`` until odometry reaches ``needed_ns``; returns whether it was
+        held."""
         if self.track.size and needed_ns <= self.track.latest()[0]:
             return False
         if len(self.held) >= MAX_HELD:
-            self.held.pop(0)
+            _, oldest, _ = self.held.pop(0)
             self.rejected["held_overflow"] += 1
-            self.released_errors.append(f"more than {MAX_HELD} inputs wait for odometry: "
-                                        "the oldest was dropped")
-        self.held.append((needed_ns, retry))
+            self.released_errors.append((oldest, f"more than {MAX_HELD} inputs wait for "
+                                                 "odometry: the oldest was dropped"))
+        self.held.append((needed_ns, what, retry))
         self.accepted["held"] += 1
         return True
 
@@ -303,11 +305,11 @@ class Mapper:
         if not ready:
             return
         self.held = [item for item in self.held if item[0] > latest_ns]
-        for _, retry in ready:
+        for _, what, retry in ready:
             try:
                 retry()
             except InputError as exc:
-                self.released_errors.append(str(exc))
+                self.released_errors.append((what, str(exc)))
 
     def _wants_keyframe(self, stamp_ns: int, pose: Array) -> bool:
         if not self.keyframes.stamps or self.continue_from is not None:
@@ -412,7 +414,7 @@ class Mapper:
             raise self.reject("loop_not_finite", f"loop closure {delta.tolist()} is not finite")
         self._check_measurement("loop closure", "loop", delta[:2], cov3)
         needed = max([r[1] for r in (from_ref, to_ref) if not isinstance(r, int)], default=0)
-        if needed and self._hold(needed, lambda: self.add_loop_closure(
+        if needed and self._hold(needed, "loop_closure", lambda: self.add_loop_closure(
                 from_ref, to_ref, delta, cov3)):
             return None
         a, carry_a = self._resolve(from_ref)
@@ -511,7 +513,7 @@ class Mapper:
             raise self.reject("gps_not_finite", f"GPS position {enu.tolist()} is not (3,)")
         self._check_measurement("GPS position", "gps", enu, cov3)
         gps_info = self._information(np.linalg.inv, cov3, "gps_not_finite", "GPS fix")
-        if self._hold(stamp_ns, lambda: self.add_gps(stamp_ns, enu, cov3)):
+        if self._hold(stamp_ns, "gps", lambda: self.add_gps(stamp_ns, enu, cov3)):
             return None
         node = self._gps_node(stamp_ns)
         R, _ = self.h2o.solver.world_pose(node)
