@@ -175,6 +175,7 @@ class Replay:
         self.use_vo = False
         self.reader: BagReader | None = None
         self.graph_file: str | None = None
+        self.datum: list[float] | None = None  # given to h2o_node (None: the first fix)
 
     # -- set-up -------------------------------------------------------------------------------
 
@@ -186,8 +187,12 @@ class Replay:
         self.use_vo = mode == "hybrid" or (mode == "auto" and has_images)
         rclpy.init(context=self.context)
         budget = self.options.budget_ms
-        h2o_params = {"budget_ms": budget if budget is not None else 0.0,
+        # The datum the bag's GPS and ground truth are about is the map's origin, as on the
+        # robot that recorded it; h2o_params may still set another.
+        stated = {"datum": reader.stats.datum} if reader.stats.datum is not None else {}
+        h2o_params = {"budget_ms": budget if budget is not None else 0.0, **stated,
                       **self.options.h2o_params}
+        self.datum = h2o_params.get("datum")
         self.h2o = H2ONode(context=self.context, parameter_overrides=_params(h2o_params))
         self.h2o.sink = self._h2o_output
         if self.use_vo:
@@ -472,6 +477,7 @@ class Replay:
             "messages": dict(reader.stats.counts),
             "out_of_order": dict(reader.stats.out_of_order),
             "salvaged": reader.stats.salvaged,
+            "datum": self.datum,
             "error": None if error is None else str(error),
             "graph": {"nodes": h2o.mapper.num_nodes,
                       "edges": h2o.mapper.graph().num_edges if h2o.mapper.num_nodes else 0,

@@ -16,6 +16,8 @@ file alone (an unusable ``metadata.yaml``), then to reading that file record by 
 
 from __future__ import annotations
 
+import json
+import math
 import os
 from collections import Counter
 from collections.abc import Iterator, Mapping, Sequence
@@ -29,6 +31,7 @@ from rosbags.typesys.store import Typestore
 
 from h2o_slam.io.bag_salvage import STORAGE_MAGIC, McapScan, Sqlite3Scan
 from h2o_slam.io.bags import (
+    DATUM_KEY,
     ClosedOnExit,
     RawMessage,
     ReplayError,
@@ -79,6 +82,9 @@ class BagStats:
             storage's own index); empty when the bag states none (a file read record by
             record without metadata).
         read: messages delivered per topic.
+        datum: the GPS datum ``[lat_deg, lon_deg, alt_m]`` the bag states
+            (:data:`~h2o_slam.io.bags.DATUM_KEY` in its metadata's ``custom_data``); ``None``
+            when it states none.
     """
 
     path: str
@@ -92,6 +98,7 @@ class BagStats:
     error: str | None = None
     declared: dict[str, int] = field(default_factory=dict)
     read: Counter[str] = field(default_factory=Counter)
+    datum: list[float] | None = None
 
     def shortfall(self) -> dict[str, tuple[int, int]]:
         """Mapped topics whose delivered count differs from the declared one:
@@ -159,6 +166,7 @@ class BagReader(ClosedOnExit):
     def _open(self) -> None:
         if not self.path.exists():
             raise ReplayError(self.path, "no such file or directory")
+        self.stats.datum = _datum(self.path)  # first: a bad one leaves nothing open
         try:
             self._reader = _any_reader(self.path)
         except Exception as exc:  # rosbags fails in many ways on damaged files
@@ -381,6 +389,29 @@ def _declared_counts(path: Path) -> dict[str, int]:
         return {str(t["topic_metadata"]["name"]): int(t["message_count"]) for t in topics}
     except Exception:  # no folder, no file, or not the rosbag2 layout: nothing declared
         return {}
+
+
+def _datum(path: Path) -> list[float] | None:
+    """The datum a rosbag2 folder's ``metadata.yaml`` states (``None``: none stated, or no
+    readable metadata, whose absence the reader reports on its own).
+
+    Raises:
+        ReplayError: a datum is stated but is not three finite numbers.
+    """
+    meta = path / "metadata.yaml"
+    try:
+        info = yaml.safe_load(meta.read_text(encoding="utf-8"))["rosbag2_bagfile_information"]
+        text = (info.get("custom_data") or {})[DATUM_KEY]
+    except Exception:  # no folder, no file, not the rosbag2 layout, or no datum stated
+        return None
+    try:
+        datum = [float(v) for v in json.loads(text)]
+    except (TypeError, ValueError):
+        datum = []
+    if len(datum) != 3 or not all(math.isfinite(v) for v in datum):
+        raise ReplayError(meta, f"custom_data {DATUM_KEY}: expected [lat_deg, lon_deg, "
+                                f"alt_m] as JSON, got {text!r}")
+    return datum
 
 
 def _any_reader(path: Path) -> AnyReader:

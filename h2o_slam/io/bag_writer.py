@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -27,12 +27,15 @@ class BagWriter(ClosedOnExit):
     Args:
         path: the bag directory to create (must not exist).
         storage: ``"mcap"`` or ``"sqlite3"``.
+        custom_data: key → text for ``metadata.yaml``'s ``custom_data`` (e.g.
+            :data:`~h2o_slam.io.bags.DATUM_KEY`).
 
     Raises:
         ReplayError: the path exists or cannot be created, or an unknown storage.
     """
 
-    def __init__(self, path: str | os.PathLike[str], storage: Storage = "mcap") -> None:
+    def __init__(self, path: str | os.PathLike[str], storage: Storage = "mcap",
+                 custom_data: Mapping[str, str] | None = None) -> None:
         from rclpy.serialization import serialize_message
 
         self.path = Path(path)
@@ -46,6 +49,8 @@ class BagWriter(ClosedOnExit):
         self._writer: Writer | None = None
         try:
             writer = Writer(self.path, version=9, storage_plugin=plugins[storage])
+            for key, value in (custom_data or {}).items():
+                writer.set_custom_data(key, value)
             writer.open()
         except Exception as exc:  # WriterError, OSError: one message naming the file
             raise ReplayError(self.path, f"cannot create bag: {error_reason(exc)}") from None
@@ -92,7 +97,8 @@ class BagWriter(ClosedOnExit):
 
 
 def write_bag(
-    path: str | os.PathLike[str], messages: Iterable[Any], storage: Storage = "mcap"
+    path: str | os.PathLike[str], messages: Iterable[Any], storage: Storage = "mcap",
+    custom_data: Mapping[str, str] | None = None,
 ) -> dict[str, int]:
     """Write a stream of messages into a new rosbag2 bag; returns messages per topic.
 
@@ -102,11 +108,12 @@ def write_bag(
             stream may be lazy: nothing is held in memory). Each ``stamp_ns`` is the bag
             time.
         storage: ``"mcap"`` or ``"sqlite3"``.
+        custom_data: as :class:`BagWriter`.
 
     Raises:
         ReplayError: as :class:`BagWriter`; the bag written so far is closed and readable.
     """
-    with BagWriter(path, storage) as bag:
+    with BagWriter(path, storage, custom_data) as bag:
         for item in messages:
             bag.write(item.topic, item.msg, item.stamp_ns, item.type_name)
         return dict(bag.counts)

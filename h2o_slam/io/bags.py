@@ -16,6 +16,11 @@ from rosbags.typesys.store import Typestore
 from h2o_slam.core.errors import InputError
 
 Storage = Literal["mcap", "sqlite3"]
+#: The ``custom_data`` key of a rosbag2 ``metadata.yaml`` that holds the GPS datum the bag's
+#: GPS fixes and ground truth are about, ``[lat_deg, lon_deg, alt_m]`` as JSON. A replay
+#: gives it to h2o_node, so its map frame is the ground truth's (without it the node takes
+#: the first fix, which is off by that fix's noise).
+DATUM_KEY = "h2o_slam/datum"
 #: ``(topic, type name, bag time ns, message)`` as read, before the role is attached.
 RawMessage = tuple[str, str, int, Any]
 

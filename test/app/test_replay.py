@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import msg_adapters as ma
+from h2o_slam.app.cli import demo as demo_cli
 from h2o_slam.app.cli import replay as replay_cli
 from h2o_slam.app.cli.demo import PLOTS
 from h2o_slam.app.cli.demo import run as run_demo
@@ -125,6 +126,22 @@ def test_demo_h2o_with_gps_beats_hybrid_vo_which_beats_wheels(tmp_path: Path) ->
         for name in PLOTS:  # the demo's own three, of both runs; each replay's three
             blob = (folder / name).read_bytes()
             assert blob[:8] == PNG_MAGIC and len(blob) > 20_000, folder / name
+
+
+def test_h2o_replay_of_the_demo_bag_gives_the_demos_numbers(tmp_path: Path) -> None:
+    """h2o-replay of the bag the demo records reproduces the demo's own replay of it: the
+    map frame is the same (the datum the drive's GPS and ground truth are about)."""
+    bag = tmp_path / "input"
+    demo_cli.record(short_drive(), bag, "mcap", with_images=False)
+    demo = Replay(demo_cli.replay_options(bag, tmp_path / "demo", gps=True, progress=False))
+    ours = demo.run()
+    assert replay_cli.main([str(bag), "--output", str(tmp_path / "cli"), "--quiet"]) == 0
+    theirs = json.loads((tmp_path / "cli" / "summary.json").read_text())
+    assert ours["accepted"]["gps"] > 5
+    for track in ("h2o", "h2o_online"):
+        assert theirs["accuracy"][track] == ours["accuracy"][track], track
+    assert (tmp_path / "cli" / "h2o.tum").read_bytes() == \
+        (tmp_path / "demo" / "h2o.tum").read_bytes()
 
 
 def test_chi2_samples_carry_each_graphs_degrees_of_freedom(bags: dict[str, Path],

@@ -19,7 +19,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from h2o_slam.core.errors import InputError
 from h2o_slam.io.bag_reader import BagMessage, BagReader, read_bag
 from h2o_slam.io.bag_writer import BagWriter, message_type_name, write_bag
-from h2o_slam.io.bags import ReplayError, jazzy_typestore
+from h2o_slam.io.bags import DATUM_KEY, ReplayError, jazzy_typestore
 from h2o_slam.io.topic_map import DEFAULT_TOPICS, ROLES, load_topic_map, topic_map
 from hybrid_vo.world import make_drive, scenario
 from hybrid_vo.world_messages import StreamMessage, Topics, drive_messages, rclpy_message_types
@@ -215,6 +215,21 @@ def test_unusable_metadata_falls_back_to_the_storage_file(
     storage_file(bag).unlink()
     with pytest.raises(ReplayError, match=r"meta: cannot open bag: .*metadata"):
         BagReader(bag)
+
+
+def test_a_bag_states_its_datum_in_its_metadata(drive: Any, tmp_path: Path) -> None:
+    stream = list(drive_messages(drive, with_images=False))
+    stated = write_bag(tmp_path / "stated", stream, custom_data={DATUM_KEY: "[48.1, 11.5, 520]"})
+    assert stated == write_bag(tmp_path / "plain", stream)
+    wheels = ("wheel_odom",)
+    with BagReader(tmp_path / "stated", required=wheels) as reader:
+        assert reader.stats.datum == [48.1, 11.5, 520.0]
+    with BagReader(tmp_path / "plain", required=wheels) as reader:
+        assert reader.stats.datum is None
+    write_bag(tmp_path / "bad", stream, custom_data={DATUM_KEY: "[48.1, 11.5]"})
+    with pytest.raises(ReplayError, match=r"bad/metadata\.yaml: custom_data h2o_slam/datum: "
+                                          r"expected \[lat_deg, lon_deg, alt_m\]"):
+        BagReader(tmp_path / "bad", required=wheels)
 
 
 def test_missing_path_and_not_a_bag(tmp_path: Path) -> None:

@@ -16,6 +16,7 @@ line (an output folder that is a file or not empty), 1 when the run fails.
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 import tempfile
@@ -37,7 +38,7 @@ from h2o_slam.app.replay import Replay, ReplayOptions
 from h2o_slam.core.errors import H2OError
 from h2o_slam.core.graph import EdgeKind
 from h2o_slam.io.bag_writer import write_bag
-from h2o_slam.io.bags import Storage
+from h2o_slam.io.bags import DATUM_KEY, Storage
 from h2o_slam.io.g2o import read_g2o
 from h2o_slam.io.plots import plot_callback_times, plot_chi2, plot_trajectories
 from h2o_slam.io.replay_outputs import read_tum
@@ -67,7 +68,8 @@ PLOTS = ("trajectories.png", "chi2.png", "callback_times.png")
 GRAPH_PERIOD_S = 1.0
 
 #: Where hybrid_vo.world puts the origin of its ENU frame (lat, lon, alt): the demo's
-#: surveyed datum, so that the map frame and the ground truth share their origin.
+#: surveyed datum, stated in its bag, so that the map frame and the ground truth share their
+#: origin.
 WORLD_DATUM = list(world.GPS_DATUM)
 
 
@@ -89,12 +91,9 @@ def run(output: Path, seed: int, laps: int, storage: Storage, progress: bool) ->
     drive = world.make_drive(demo_drive(seed, laps))
     bag = output / "input"
     start = time.perf_counter()
-    write_bag(bag, drive_messages(drive), storage)
+    record(drive, bag, storage)
     record_s = time.perf_counter() - start
-    params = {"datum": WORLD_DATUM}
-    runs = {name: Replay(ReplayOptions(bag=bag, output=output / folder, use_gps=gps,
-                                       h2o_params=params, progress=progress,
-                                       graph_period_s=GRAPH_PERIOD_S))
+    runs = {name: Replay(replay_options(bag, output / folder, gps, progress))
             for name, folder, gps in (("with GPS", "replay", True),
                                       ("without GPS", "no_gps", False))}
     with_gps, without = (r.run() for r in runs.values())
@@ -104,6 +103,21 @@ def run(output: Path, seed: int, laps: int, storage: Storage, progress: bool) ->
             ("H2O without GPS", acc_no.get("h2o")), ("H2O with GPS", acc.get("h2o"))]
     return {"rows": rows, "record_s": record_s, "frames": len(drive),
             "summaries": {"with_gps": with_gps, "without_gps": without}}
+
+
+def record(drive: world.Drive, bag: Path, storage: Storage, with_images: bool = True) -> None:
+    """Write ``drive`` as the demo's input bag, stating the world's datum in its metadata so
+    that any replay of it (``h2o-replay`` too) maps in the ground truth's frame
+    (``with_images=False``: the back end's inputs alone, a quick bag for tests)."""
+    write_bag(bag, drive_messages(drive, with_images=with_images), storage,
+              custom_data={DATUM_KEY: json.dumps(WORLD_DATUM)})
+
+
+def replay_options(bag: Path, output: Path, gps: bool, progress: bool) -> ReplayOptions:
+    """How the demo replays its bag (``gps``: feed GPS to the back end): as ``h2o-replay``
+    does, the datum from the bag, with χ² sampled more often."""
+    return ReplayOptions(bag=bag, output=output, use_gps=gps, progress=progress,
+                         graph_period_s=GRAPH_PERIOD_S)
 
 
 def write_plots(output: Path, runs: dict[str, Replay]) -> None:
