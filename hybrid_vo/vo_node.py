@@ -257,6 +257,7 @@ class HybridVoNode(Node):
         self.create_timer(float(p["diagnostics_period"]),
                           self._boundary("diagnostics_timer", self._on_timer))
         self._diagnose = self._boundary("diagnostics", self._maybe_diagnostics)
+        self._log_ready()
 
     # ------------------------------------------------------------------ set-up
 
@@ -310,6 +311,21 @@ class HybridVoNode(Node):
                 "publish_tf is true but tf2_msgs is not installed (ros-jazzy-tf2-msgs); "
                 "odom -> base_link is not published on /tf (counted as tf_skipped)"
             )
+
+    def _log_ready(self) -> None:
+        """One line at start-up: the node is up, the topics it reads and writes, and the
+        parameters that decide what it computes."""
+        p, topics = self._p, self.input_topics
+        out = ", ".join(self.output_topics.values())
+        self.get_logger().info(
+            f"{self.get_fully_qualified_name()} ready: in {topics['left_image']}, "
+            f"{topics['right_image']} ({'CompressedImage' if p['use_compressed'] else 'Image'}"
+            f"), {topics['left_info']}, {topics['right_info']}, {topics['odom']} (wheel "
+            f"odometry); out {out}; {p['odom_frame']} -> {p['base_frame']}, approx_sync "
+            f"{str(p['approx_sync']).lower()} ({p['approx_sync_max_interval']} s), work_width_px "
+            f"{p['odometer.work_width_px']}, num_patches {p['odometer.num_patches']}, "
+            f"frame_rate_hz {p['odometer.frame_rate_hz']}, camera_height "
+            f"{p['camera_height']} m, camera_pitch {p['camera_pitch']} rad")
 
     @property
     def output_topics(self) -> dict[str, str]:

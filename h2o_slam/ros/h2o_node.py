@@ -187,6 +187,7 @@ class H2ONode(Node):
         self._make_interfaces()
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._boundary("parameters", self._apply_parameters))
+        self._log_ready()
 
     def destroy_node(self) -> None:
         """Destroy the node and let the garbage collector reclaim it.
@@ -330,6 +331,24 @@ class H2ONode(Node):
         self.create_timer(float(self.p("diagnostics_period")),
                           guard("diagnostics_timer", self._diagnostics_timer))
         self.create_timer(float(self.p("idle_period")), guard("idle_timer", self._idle_timer))
+
+    def _log_ready(self) -> None:
+        """One line at start-up: the node is up, the topics it reads and writes, and the
+        parameters that decide its cost."""
+        out = {key: pub.topic_name for key, pub in self.publishers_by_key.items()}
+        budget = float(self.p("budget_ms"))
+        solves = "exact solves in a worker process" if budget > 0.0 else (
+            "every edge solved in full, deterministic")
+        tf = " and /tf" if "tf" in out and self.p("publish_tf") else ""
+        self.get_logger().info(
+            f"{self.get_fully_qualified_name()} ready: in "
+            + ", ".join(f"{topic} ({what})" for what, topic in self.input_topics.items())
+            + f"; out {out['poses']}, {out['path']}, {out['markers']}, {out['pose']}, "
+            f"{out['map_to_odom']}{tf}, {out['diagnostics']}; budget_ms {budget:g} "
+            f"({solves}), robust {str(bool(self.p('robust'))).lower()}, queue depths "
+            f"{self.p('input_queue_depth')} (odometry, GPS) / "
+            f"{self.p('loop_closure_queue_depth')} (loop closures), map_frame "
+            f"{self.p('map_frame')}, map_file {str(self.p('map_file')) or 'unset'}")
 
     # -- parameters at run time -----------------------------------------------------------------
 

@@ -1,4 +1,4 @@
-"""hybrid_vo_node's inputs: every message of each input accounted
+"""hybrid_vo_node's inputs: the start-up line, and every message of each input accounted
 for in /diagnostics (received = accepted + rejected + dropped), bursts included."""
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from nav_msgs.msg import Odometry
 from node_harness import Harness
+from rclpy.impl.rcutils_logger import RcutilsLogger
 from sensor_msgs.msg import Image
 
 import msg_adapters as ma
@@ -77,3 +78,24 @@ def test_images_unpaired_refused_or_reset_away_are_accounted_for(harness: Harnes
     assert counts["right_image"] == {"received": 2, "accepted": 1, "rejected": 0,
                                      "dropped": 1}
     assert node.sync.stats.dropped[0] == 11
+
+
+def test_start_up_says_the_node_is_ready_with_its_topics(
+        harness: Harness, monkeypatch: pytest.MonkeyPatch) -> None:
+    lines: list[str] = []
+    info = RcutilsLogger.info
+
+    def spy(self: RcutilsLogger, message: str, **kwargs: Any) -> Any:
+        lines.append(message)
+        return info(self, message, **kwargs)
+
+    monkeypatch.setattr(RcutilsLogger, "info", spy)
+    harness.add(HybridVoNode)
+    ready = [line for line in lines if "ready" in line]
+    assert len(ready) == 1, lines
+    ns = harness.namespace
+    assert ready[0].startswith(f"{ns}/hybrid_vo_node ready")
+    for topic in ("left/image_rect", "right/image_rect", "left/camera_info",
+                  "right/camera_info", "odom", "odometry/hybrid"):
+        assert f"{ns}/{topic}" in ready[0], (topic, ready[0])
+    assert "work_width_px 160" in ready[0] and "odom -> base_link" in ready[0]

@@ -1,4 +1,4 @@
-"""h2o_node's inputs in-process: every message of each input
+"""h2o_node's inputs in-process: the start-up line, and every message of each input
 accounted for in /diagnostics (received = accepted + rejected + dropped), bursts included."""
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from nav_msgs.msg import Odometry
 from node_harness import Harness
+from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.parameter import Parameter
 from std_srvs.srv import SetBool
 
@@ -156,3 +157,26 @@ def test_a_held_closure_refused_when_odometry_reaches_it_counts_as_rejected(
     assert _counts(node)["loop_closure"] == {"received": 1, "accepted": 0, "rejected": 1,
                                              "dropped": 0}
     assert node.mapper.rejected["loop_same_node"] == 1
+
+
+def test_start_up_says_the_node_is_ready_with_its_topics_and_budget(
+        harness: Harness, monkeypatch: pytest.MonkeyPatch) -> None:
+    lines: list[str] = []
+    info = RcutilsLogger.info
+
+    def spy(self: RcutilsLogger, message: str, **kwargs: Any) -> Any:
+        lines.append(message)
+        return info(self, message, **kwargs)
+
+    monkeypatch.setattr(RcutilsLogger, "info", spy)
+    node = harness.add(H2ONode, parameter_overrides=[Parameter("budget_ms", value=3.0)])
+    ready = [line for line in lines if "ready" in line]
+    assert len(ready) == 1, lines
+    ns = harness.namespace
+    for topic in (f"{ns}/odom", f"{ns}/loop_closure", f"{ns}/gps/fix",
+                  f"{ns}/h2o_node/graph/poses", f"{ns}/h2o_node/pose",
+                  f"{ns}/h2o_node/map_to_odom"):
+        assert topic in ready[0], (topic, ready[0])
+    assert ready[0].startswith(f"{ns}/h2o_node ready")
+    assert "budget_ms 3 " in ready[0] and "loop closures" in ready[0]
+    assert node.input_topics["odometry"] == f"{ns}/odom"
