@@ -49,6 +49,7 @@ from h2o_slam.app.progress import Progress
 from h2o_slam.core.errors import InputError
 from h2o_slam.core.graph import EdgeKind
 from h2o_slam.core.trajectory_error import ate_m, final_error_m, match_stamps
+from h2o_slam.core.warmup import warm_up
 from h2o_slam.io.bag_reader import BagMessage, BagReader, BagStats
 from h2o_slam.io.bag_writer import BagWriter
 from h2o_slam.io.bags import ReplayError, Storage, jazzy_typestore
@@ -193,6 +194,9 @@ class Replay:
         h2o_params = {"budget_ms": budget if budget is not None else 0.0, **stated,
                       **self.options.h2o_params}
         self.datum = h2o_params.get("datum")
+        # A replay feeds the node without spinning its timers: the kernels are loaded first,
+        # so that the node handles each message as it comes instead of holding it.
+        warm_up()
         self.h2o = H2ONode(context=self.context, parameter_overrides=_params(h2o_params))
         self.h2o.sink = self._h2o_output
         if self.use_vo:

@@ -28,7 +28,7 @@ import os
 import re
 import sys
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import fields, replace
 from typing import Any
@@ -53,6 +53,7 @@ from visualization_msgs.msg import MarkerArray
 
 import msg_adapters as ma
 from h2o_slam.core import geometry as geo
+from h2o_slam.core import warmup
 from h2o_slam.core.errors import H2OError, InputError
 from h2o_slam.core.graph import EdgeKind, edge_chi2
 from h2o_slam.core.timing import CallbackTimes, CostShare, InputHealth
@@ -168,6 +169,8 @@ class H2ONode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
+        self._held: deque[tuple[str, Callable[[], None]]] = deque()
+        self.held_while_warming = 0
         for name, default, text, bounds in PARAMETERS:
             self.declare_parameter(name, default, _descriptor(name, default, text, bounds))
         self.sink: Callable[[str, Any], None] | None = None
@@ -182,9 +185,16 @@ class H2ONode(Node):
         self._graph_dirty = True
         self._tf_cls = _load_tf_message()
         self._reset_load_state()
+        self._make_interfaces()
+        # The compiled kernels load (or, on a first start after the sources changed, compile)
+        # beside the executor: the node answers at once and holds its inputs until then.
+        # Started before the mapper, whose solver would otherwise load them here.
+        warmup.warm_up_in_background()
+        self._started_s = time.perf_counter()
         self.mapper = self._start_mapper()
         self._datum = self._configured_datum()
-        self._make_interfaces()
+        self._warming_timer = self.create_timer(
+            WARMING_PERIOD_S, self._boundary("warming_timer", self._warming_tick))
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._boundary("parameters", self._apply_parameters))
         self._log_ready()
@@ -370,10 +380,25 @@ class H2ONode(Node):
     # -- inputs -------------------------------------------------------------------------------
 
     def _guarded(self, what: str, handler: Callable[[], None]) -> None:
-        """Run one input's handling, timing it: the boundary of every input callback. Bad
-        input is logged, counted and survived, and so is any other exception (counted as
-        ``<what>: unexpected <Type>``); validation comes first in the mapper, so a refused
-        input leaves nothing behind in the track or the graph."""
+        """The boundary of every input callback: while the kernels load the input is held
+        (in order, none dropped), then handled (:meth:`_handle`)."""
+        if not warmup.is_ready():
+            self._held.append((what, handler))
+            self.held_while_warming += 1
+            return
+        self._release_held()
+        self._handle(what, handler)
+
+    def _release_held(self) -> None:
+        """Handle the inputs held while the kernels loaded, in their order of arrival."""
+        while self._held:
+            self._handle(*self._held.popleft())
+
+    def _handle(self, what: str, handler: Callable[[], None]) -> None:
+        """Run one input's handling, timing it. Bad input is logged, counted and survived,
+        and so is any other exception (counted as ``<what>: unexpected <Type>``); validation
+        comes first in the mapper, so a refused input leaves nothing behind in the track or
+        the graph."""
         start = time.perf_counter()
         counted = sum(self.mapper.rejected.values())
         counts = self.inputs[what]
@@ -444,6 +469,11 @@ class H2ONode(Node):
         return odom.lag_ms > allowed
 
     def _idle_timer(self) -> None:
+        if not warmup.is_ready():
+            return
+        if self._held:  # the kernels are ready and no input came since
+            self._release_held()
+            return
         if self.behind():
             self.idle_yielded += 1
             return
@@ -548,6 +578,8 @@ class H2ONode(Node):
             share.ran(start, time.perf_counter() - start)
 
     def _map_to_odom_timer(self) -> None:
+        if not warmup.is_ready():
+            return
         self._shared("map_to_odom", self.publish_map_to_odom)
 
     def publish_map_to_odom(self, refresh: bool = True) -> None:
@@ -568,6 +600,8 @@ class H2ONode(Node):
             self.emit("tf", ma.fill_tf_message(self._tf_cls, [msg]))
 
     def _graph_timer(self) -> None:
+        if not warmup.is_ready():
+            return
         share = self.shares["graph"]
         start = time.perf_counter()
         if not (self._graph_dirty and self.mapper.num_nodes and share.due(start)):
@@ -648,6 +682,8 @@ class H2ONode(Node):
         """The node's status: callback times against the budget, graph size, χ², counts of
         accepted, rejected, dropped and late inputs. ``refresh_chi2``: compute χ² anew (else
         the last value, with its age)."""
+        if not warmup.is_ready():
+            return self._warming_report()
         budget = float(self.p("budget_ms"))
         summary = self.times.summary()
         exact = self.mapper.h2o.converger.state
@@ -663,6 +699,8 @@ class H2ONode(Node):
             "idle_overruns": self.idle_times.overruns,
             **self._load_values(),
             "paused": self.paused,
+            "warming_up": False,
+            "held_while_warming": self.held_while_warming,
             "tf_available": self._tf_cls is not None,
             "gps_datum": "unset" if self._datum is None else
             f"{self._datum.lat_deg:.8f}, {self._datum.lon_deg:.8f}",
@@ -679,6 +717,28 @@ class H2ONode(Node):
         return ma.DiagnosticReport(name=f"{self.get_name()}: solver", level=1 if late else 0,
                                    message=message, values=values, hardware_id="h2o_slam")
 
+    def _warming_tick(self) -> None:
+        """While the kernels load: say so on ``/diagnostics`` (sooner than its period);
+        once loaded: handle the held inputs and stop."""
+        if not warmup.is_ready():
+            self.publish_diagnostics()
+            return
+        self._warming_timer.cancel()
+        self._release_held()
+        self.get_logger().info(f"solver kernels ready {time.perf_counter() - self._started_s:.1f}"
+                               f" s after start ({self.held_while_warming} inputs were held)")
+
+    def _warming_report(self) -> ma.DiagnosticReport:
+        """The status while the kernels load: up, holding its inputs, nothing solved yet."""
+        return ma.DiagnosticReport(
+            name=f"{self.get_name()}: solver", level=1,
+            message=f"warming up: loading the solver's compiled kernels ({len(self._held)} "
+            "inputs held; a first start after an install that did not compile them takes a "
+            "minute or more)",
+            values={"warming_up": True, "held_inputs": len(self._held),
+                    "held_while_warming": self.held_while_warming, "paused": self.paused},
+            hardware_id="h2o_slam")
+
     def publish_diagnostics(self, refresh_chi2: bool = True) -> None:
         """``/diagnostics`` (``refresh_chi2``: as :meth:`diagnostics`)."""
         self.emit("diagnostics", ma.fill_diagnostic_array(
@@ -687,6 +747,8 @@ class H2ONode(Node):
     # -- services -----------------------------------------------------------------------------
 
     def _srv_save(self, request: Any, response: Any) -> Any:
+        if not warmup.is_ready():
+            return _warming(response)
         path = str(self.p("map_file"))
         if not path:
             response.success, response.message = False, "map_file is not set"
@@ -702,12 +764,16 @@ class H2ONode(Node):
         return response
 
     def _srv_exact(self, request: Any, response: Any) -> Any:
+        if not warmup.is_ready():
+            return _warming(response)
         before, after = self.mapper.exact_solve()
         self._graph_dirty = True
         response.success, response.message = True, f"chi2 {before:.6g} -> {after:.6g}"
         return response
 
     def _srv_reset(self, request: Any, response: Any) -> Any:
+        if not warmup.is_ready():
+            return _warming(response)
         self.mapper.close()
         self.mapper = Mapper(self.mapper_config())
         self._datum = self._configured_datum()
@@ -730,6 +796,17 @@ class H2ONode(Node):
         response.success = True
         response.message = "paused" if self.paused else "running"
         return response
+
+
+#: How often a warming-up node says so on ``/diagnostics``.
+WARMING_PERIOD_S = 0.25
+
+
+def _warming(response: Any) -> Any:
+    """A service's answer while the kernels load (the inputs are held, nothing is lost)."""
+    response.success = False
+    response.message = "warming up: the solver's kernels are loading; try again in a moment"
+    return response
 
 
 def _rss_mb() -> float:

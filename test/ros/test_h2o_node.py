@@ -472,3 +472,39 @@ def test_graph_timer_publishes_only_what_someone_listens_to(harness: Harness) ->
     node._graph_timer()
     harness.spin_until(lambda: bool(poses), 10.0, "graph poses")
     assert node.shares["graph"].runs == 1 and len(poses[-1].poses) == node.mapper.num_nodes
+
+
+def test_inputs_while_the_kernels_load_are_held_and_then_all_handled(
+        harness: Harness, loop_drive: world.Drive, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A first start compiles the kernels beside the executor: the node answers at once,
+    says it is warming up, holds every input in order, and handles them all when ready, as
+    if they had come after (same graph as a node that was warm from the start)."""
+    from h2o_slam.core import warmup
+
+    messages = stream(loop_drive, gps=False, loops=True)[:150]
+    other = Harness()  # its own namespace: the two nodes must not hear each other
+    try:
+        warm, _ = start(other)
+        play(other, messages, warm)
+        expected = (warm.mapper.num_nodes, dict(warm.mapper.accepted))
+    finally:
+        other.close()
+    ready = {"now": False}
+    monkeypatch.setattr(warmup, "is_ready", lambda: ready["now"])
+    node, out = start(harness)
+    for m in messages:
+        role, msg_type = ROLES[m.topic]
+        harness.publish(msg_type, role, m.msg, spins=0)
+    harness.spin_until(lambda: node.held_while_warming == len(messages), 10.0, "all held")
+    assert node.mapper.num_nodes == 0
+    diag = latest_diagnostics(harness, out, node)
+    assert diag["warming_up"] == "true" and int(diag["held_inputs"]) == len(messages)
+    answer = harness.call(Trigger, "h2o_node/exact_solve", Trigger.Request())
+    assert not answer.success and "warming up" in answer.message
+    ready["now"] = True
+    harness.spin_until(lambda: not node._held, 10.0, "held inputs handled")
+    assert (node.mapper.num_nodes, dict(node.mapper.accepted)) == expected
+    assert expected[0] > 10
+    diag = latest_diagnostics(harness, out, node)
+    assert diag["warming_up"] == "false"
+    assert int(diag["held_while_warming"]) == len(messages)
