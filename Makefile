@@ -27,7 +27,7 @@ unexport ROS_LOCALHOST_ONLY ROS_AUTOMATIC_DISCOVERY_RANGE ROS_STATIC_PEERS
 help:
 	@echo "make demo   h2o-demo: simulated drive -> bag -> replay through both nodes -> ATE table"
 	@echo "make test   ruff, mypy and pytest (what CI runs)"
-	@echo "make bench  benchmarks against reference solvers (installs requirements-bench.txt)"
+	@echo "make bench  benchmarks against reference solvers (installs requirements-bench.txt; H2O_POSEGRAPHS=DIR: the public pose graphs, bench/README.md)"
 	@echo "make doc-images  copy the plots of the last make demo (out/demo/*.png) into doc/images/"
 	@echo "make venv   create/update .venv (reruns when a requirements file, setup.py or tools/tf2_msgs changes) and compile the solver kernels into the cache"
 	@echo "make clean  remove build/, install/, log/ and out/"

@@ -212,8 +212,8 @@ NOTES = """Notes:
   fastest time: on the shared two-core machine a lost time slice would otherwise pose as a
   constraint's maximum. "max ∞ / max this" divides the D_max = ∞ row's maximum by this
   row's.
-- ais2klinik (15 115 poses) is not in `../shared/data/posegraphs`: city10000, the largest
-  graph there, stands in for its size, and kitti_00, the longest loop (its longest domain),
+- ais2klinik (15 115 poses) is not among the public graphs benchmarked here: city10000, the
+  largest of them, stands in for its size, and kitti_00, the longest loop (its longest domain),
   for its long loops.
 - TORO-style: no linearization and no solve; one endpoint is moved to where the measurement
   puts it and the move is spread over its chain by the compliance `1 / diag(B)`
@@ -238,7 +238,7 @@ def render_section(results: list[GraphCost]) -> str:
             f"{format_table(results)}\n\nTargets (issue 12):\n\n{targets(results)}\n{NOTES}")
 
 
-def run(data: Path, names: list[str], results: Path | None, repeat: int = 3) -> int:
+def run(data: Path | None, names: list[str], results: Path | None, repeat: int = 3) -> int:
     """Benchmark ``names`` from ``data``; return an exit code."""
     paths = select_graphs("cost.py", data, names)
     if isinstance(paths, int):

@@ -4,8 +4,8 @@ on the public planar pose graphs, and LAGO as the warm start of H₂O's offline 
     .venv/bin/python bench/lago.py [--data DIR] [--graphs NAME ...] [--passes P]
                                    [--repeats R] [--results FILE]
 
-For every planar ``*.g2o`` in ``--data`` (default ``../shared/data/posegraphs/`` relative to
-the repo root; a missing folder is reported and the script exits 0):
+For every planar ``*.g2o`` in ``--data`` (default ``$H2O_POSEGRAPHS``; neither: exit 2; a
+missing folder is reported and the script exits 0):
 
 - our LAGO, :func:`h2o_slam.core.lago.lago_estimate`, timed in-process (median of ``--repeats``
   runs after one warm-up; file reading excluded), with ``jacobian="estimate"`` (the
@@ -410,7 +410,7 @@ def render_section(rows: list[Row], passes: int, repeats: int) -> str:
             f"{format_tables(rows, passes)}\n\n{notes(repeats)}")
 
 
-def run(data: Path, names: list[str] | None, passes: int, repeats: int,
+def run(data: Path | None, names: list[str] | None, passes: int, repeats: int,
         results: Path | None) -> int:
     paths = select_graphs("lago.py", data, names)
     if isinstance(paths, int):

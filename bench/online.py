@@ -864,7 +864,7 @@ def render_section(results: list[GraphOnline], budgets_ms: list[float],
 # --- entry point -------------------------------------------------------------------------------
 
 
-def run(data: Path, names: list[str] | None, budgets_ms: list[float], timeout_s: float,
+def run(data: Path | None, names: list[str] | None, budgets_ms: list[float], timeout_s: float,
         out_dir: Path | None, skip_isam2: bool, results: Path | None, plots: Path,
         period_ms: float = PERIOD_MS) -> int:
     """Benchmark the graphs of ``data`` (all, or ``names``); return an exit code."""

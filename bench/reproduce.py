@@ -4,6 +4,11 @@
     .venv/bin/python bench/reproduce.py --quick    # a few-minute subset
     .venv/bin/python bench/reproduce.py --only thesis_energy carlone_table1
 
+The public pose graphs come from ``--data DIR`` (default ``$H2O_POSEGRAPHS``; without either,
+an experiment that reads them is not run and the script exits 2), the KITTI stereo clip of
+``hybrid_vo`` from ``--kitti DIR`` (left out without it); ``bench/README.md`` says where
+both come from.
+
 Each experiment lives in ``bench/repro/<name>.py`` (see ``bench/repro/__init__.py``); a
 section whose module is missing or fails is written as such, and the others still run.
 """
@@ -24,11 +29,13 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
 from repro.context import Context  # noqa: E402
-from results_md import command, replace_section, revision  # noqa: E402
+from results_md import command, default_data, no_data, replace_section, revision  # noqa: E402
 
 #: In the order of issue 15's list.
 EXPERIMENTS = ("thesis_energy", "thesis_dmax", "thesis_noise", "hybrid_vo", "carlone_table1",
                "hybrid_hessians")
+#: The experiments that run without the public pose graphs.
+WITHOUT_GRAPHS = ("hybrid_vo",)
 
 
 def run_one(name: str, ctx: Context) -> tuple[str, str]:
@@ -60,7 +67,9 @@ def header() -> str:
         "Written by `bench/reproduce.py` (`--quick` for a few-minute subset, `--only NAME` "
         "to re-run one experiment); each section ends with when, at which revision and by "
         f"which command it was made. Machine: {platform.machine()}, "
-        f"Python {platform.python_version()}.\n\n"
+        f"Python {platform.python_version()}. The public pose graphs are read from "
+        "`--data DIR` or `$H2O_POSEGRAPHS`, the KITTI clip from `--kitti DIR` "
+        "(`bench/README.md` says where they come from).\n\n"
         "Each section: the seed's numbers and ours side by side, the protocol differences, "
         "figures, and a verdict.\n")
 
@@ -70,14 +79,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="a few-minute subset")
     parser.add_argument("--only", nargs="+", choices=EXPERIMENTS, metavar="NAME",
                         help=f"run these experiments only ({', '.join(EXPERIMENTS)})")
-    parser.add_argument("--data", type=Path, default=REPO.parent / "shared/data/posegraphs",
-                        help="folder of the public pose graphs")
+    parser.add_argument("--data", type=Path, default=default_data(), metavar="DIR",
+                        help="folder of the public pose graphs as .g2o files (default: "
+                        "$H2O_POSEGRAPHS; see bench/README.md)")
+    parser.add_argument("--kitti", type=Path, default=None, metavar="DIR",
+                        help="a KITTI odometry stereo sequence for hybrid_vo (calib.txt, "
+                        "poses.txt and the image pairs; left out without it)")
     parser.add_argument("--output", type=Path, default=REPO / "bench/REPRODUCTION.md",
                         help="markdown written (sections of experiments not run are kept)")
     args = parser.parse_args(argv)
+    if args.data is None and set(args.only or EXPERIMENTS) - set(WITHOUT_GRAPHS):
+        return no_data("reproduce.py")
     plots = args.output.parent / "repro_plots"
     plots.mkdir(parents=True, exist_ok=True)
-    ctx = Context(quick=args.quick, data=args.data, plots=plots, repo=REPO)
+    ctx = Context(quick=args.quick, data=args.data, plots=plots, repo=REPO, kitti=args.kitti)
     if not args.output.exists() or args.only is None:
         args.output.write_text(header())
     for name in args.only or EXPERIMENTS:

@@ -1,9 +1,14 @@
 """Shared plumbing of the benchmarks: each owns one ``## …`` section of ``bench/RESULTS.md``,
-and those over the public pose graphs take the same ``--data/--graphs/--results`` arguments."""
+and those over the public pose graphs take the same ``--data/--graphs/--results`` arguments.
+
+The public pose graphs are not in this repository: ``--data DIR`` names their folder, by
+default the environment's ``H2O_POSEGRAPHS`` (``bench/README.md`` says where they come from).
+"""
 
 from __future__ import annotations
 
 import argparse
+import os
 import shlex
 import subprocess
 import sys
@@ -15,19 +20,53 @@ from typing import TypeVar
 Row = TypeVar("Row")
 
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT_DATA = REPO.parent / "shared" / "data" / "posegraphs"
 DEFAULT_RESULTS = REPO / "bench" / "RESULTS.md"
+#: The environment variable naming the folder of the public pose graphs (``--data``'s default).
+POSEGRAPHS_ENV = "H2O_POSEGRAPHS"
+#: How a recorded command shows ``--data``'s folder (``bench/RESULTS.md`` explains it).
+POSEGRAPHS_SHOWN = "$POSEGRAPHS"
+#: Where the graphs come from, for the line that says they were not given.
+POSEGRAPHS_ORIGIN = ("the standard public pose graphs as .g2o files (intel, manhattan, CSAIL, "
+                     "MIT, city10000, kitti_00, sphere2500, parking-garage, smallGrid3D, "
+                     "tinyGrid3D, as the SE-Sync project's data/ folder distributes them; "
+                     "see bench/README.md)")
+
+
+def default_data() -> Path | None:
+    """``--data``'s default: the folder ``H2O_POSEGRAPHS`` names, or None when it is unset."""
+    folder = os.environ.get(POSEGRAPHS_ENV, "")
+    return Path(folder) if folder else None
+
+
+def no_data(prog: str) -> int:
+    """Say, on one line, that no folder of graphs was given and how to give one; exit code 2."""
+    print(f"{prog}: no pose graphs given: pass --data DIR (or set {POSEGRAPHS_ENV}=DIR), "
+          f"DIR holding {POSEGRAPHS_ORIGIN}", file=sys.stderr)
+    return 2
 
 
 def command(repo: Path) -> str:
-    """The command line that is running, with paths relative to ``repo`` where they can be."""
+    """The command line that is running, with paths relative to ``repo`` where they can be
+    and ``--data``'s folder shown as ``$POSEGRAPHS`` (it differs from machine to machine)."""
     parts = []
     for p in (Path(sys.executable), Path(sys.argv[0]).resolve()):
         try:
             parts.append(str(p.relative_to(repo)))
         except ValueError:
             parts.append(str(p))
-    return shlex.join([*parts, *sys.argv[1:]])
+    args: list[str] = []
+    rest = iter(sys.argv[1:])
+    for arg in rest:
+        if arg == "--data":
+            args.append(arg)
+            if next(rest, None) is not None:
+                args.append(POSEGRAPHS_SHOWN)
+        elif arg.startswith("--data="):
+            args.append(f"--data={POSEGRAPHS_SHOWN}")
+        else:
+            args.append(arg)
+    # $POSEGRAPHS stays a variable for the reader's shell.
+    return " ".join(a if POSEGRAPHS_SHOWN in a else shlex.quote(a) for a in [*parts, *args])
 
 
 def revision(repo: Path) -> str:
@@ -63,9 +102,11 @@ def replace_section(path: Path, heading: str, section: str) -> None:
 
 def add_graph_arguments(parser: argparse.ArgumentParser,
                         default_graphs: list[str] | None = None) -> None:
-    """``--data``, ``--graphs``, ``--results`` and ``--no-results``."""
-    parser.add_argument("--data", type=Path, default=DEFAULT_DATA,
-                        help=f"folder of .g2o graphs (default {DEFAULT_DATA})")
+    """``--data`` (default: ``$H2O_POSEGRAPHS``; :func:`select_graphs` exits 2 without
+    either), ``--graphs``, ``--results`` and ``--no-results``."""
+    parser.add_argument("--data", type=Path, default=default_data(), metavar="DIR",
+                        help=f"folder of the public pose graphs as .g2o files (default: "
+                        f"${POSEGRAPHS_ENV}; see bench/README.md)")
     parser.add_argument("--graphs", nargs="+", metavar="NAME", default=default_graphs,
                         help="graphs to run, as file stems (default: "
                         f"{' '.join(default_graphs) if default_graphs else 'all'})")
@@ -80,10 +121,13 @@ def results_path(args: argparse.Namespace) -> Path | None:
     return None if args.no_results else args.results
 
 
-def select_graphs(prog: str, data: Path, names: list[str] | None) -> list[Path] | int:
+def select_graphs(prog: str, data: Path | None, names: list[str] | None) -> list[Path] | int:
     """The ``.g2o`` files of ``data`` to run (all, or ``names`` in that order), or the exit
-    code after saying why there are none: 0 when there is nothing to benchmark (a missing
-    folder: the data are optional), 2 for a name with no file."""
+    code after saying why there are none: 2 when no folder was given (``data`` None: neither
+    ``--data`` nor ``H2O_POSEGRAPHS``), 0 when there is nothing to benchmark (the folder
+    given is missing or holds no graph), 2 for a name with no file."""
+    if data is None:
+        return no_data(prog)
     if not data.is_dir():
         print(f"{prog}: data folder {data} is missing; nothing to benchmark (pass --data DIR).")
         return 0

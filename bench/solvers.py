@@ -402,7 +402,7 @@ def render_section(results: list[GraphResult], skipped: list[str]) -> str:
             f"{format_tables(results)}\n\n{skip}{NOTES}")
 
 
-def run(data: Path, names: list[str] | None, timeout_s: float, out_dir: Path | None,
+def run(data: Path | None, names: list[str] | None, timeout_s: float, out_dir: Path | None,
         results: Path | None) -> int:
     """Benchmark the graphs of ``data`` (all, or ``names``); return an exit code."""
     paths = select_graphs("solvers.py", data, names)

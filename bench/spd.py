@@ -3,8 +3,8 @@
     .venv/bin/python bench/spd.py [--data DIR] [--graphs NAME ...] [--repeats R]
                                   [--results FILE | --no-results]
 
-For every ``*.g2o`` in ``--data`` (default ``../shared/data/posegraphs/``; a missing folder
-is reported and the script exits 0), two matrices:
+For every ``*.g2o`` in ``--data`` (default ``$H2O_POSEGRAPHS``; neither: exit 2; a missing
+folder is reported and the script exits 0), two matrices:
 
 - LAGO's phase-3 matrix ``Ω_x`` (planar graphs; ``lago(graph).information``), solved once:
   what LAGO pays (ordering, symbolic analysis and numeric factorization, then the solve);

@@ -5,7 +5,9 @@ against the files they name."""
 from __future__ import annotations
 
 import importlib
+import os
 import re
+import subprocess
 import unicodedata
 from pathlib import Path
 from typing import Any
@@ -21,6 +23,12 @@ ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "doc").glob("*.md"))]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 RUN_TIME = "**Run time.**"
+#: Folders that are not the project's own files (when there is no git to list those).
+NOT_OURS = {".git", ".venv", "build", "install", "out", "log", "__pycache__",
+            ".mypy_cache", ".ruff_cache", ".pytest_cache", ".hypothesis"}
+#: What a clone cannot have: a sibling folder of data beside it, this machine's paths. Written
+#: so that this file does not match them itself.
+OUTSIDE = re.compile(r"\.\./shared\b|\bshared/dat[a]\b|/\s*[\"']shared[\"']|/wor[k]/")
 
 
 def fmt_default(value: Any) -> str:
@@ -160,3 +168,38 @@ def test_the_front_page_is_short_and_every_doc_page_is_linked_from_it() -> None:
     assert len(readme.splitlines()) < 200
     for page in (ROOT / "doc").glob("*.md"):
         assert f"(doc/{page.name})" in readme, page.name
+
+
+def project_files() -> list[Path]:
+    """The files of the project: what ``git ls-files`` lists, or, without git, every file
+    under the root outside :data:`NOT_OURS` and ``*.egg-info``."""
+    try:
+        listed = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True,
+                                check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        files = []
+        for folder, dirs, names in os.walk(ROOT):
+            dirs[:] = [d for d in dirs if d not in NOT_OURS and not d.endswith(".egg-info")]
+            files += [Path(folder) / name for name in names]
+        return files
+    return [ROOT / name for name in listed.decode().split("\0") if name]
+
+
+def test_nothing_points_outside_the_repository() -> None:
+    """A clone stands alone: no file names a data folder beside the clone or a path of the
+    machine it was written on (optional data come from ``--data`` or an environment
+    variable, as ``bench/README.md`` and ``doc/install.md`` say)."""
+    files = project_files()
+    assert any(p.name == "README.md" for p in files)
+    found = []
+    for path in files:
+        try:
+            blob = path.read_bytes()
+        except (FileNotFoundError, IsADirectoryError):
+            continue  # listed by git but deleted (or a submodule) in this working tree
+        if b"\0" in blob[:8192]:
+            continue  # binary: a picture, a bag
+        for number, line in enumerate(blob.decode("utf-8", "replace").splitlines(), 1):
+            if OUTSIDE.search(line):
+                found.append(f"{path.relative_to(ROOT)}:{number}: {line.strip()[:120]}")
+    assert not found, "points outside the repository:\n" + "\n".join(found)

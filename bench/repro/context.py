@@ -11,16 +11,20 @@ VERDICTS = ("reproduced", "reproduced in shape", "not reproduced")
 
 @dataclass(frozen=True)
 class Context:
-    """``quick``: a few-minute subset; ``data``: the public pose graphs (may be missing);
-    ``plots``: where PNGs go (linked from the markdown as ``repro_plots/<name>.png``)."""
+    """``quick``: a few-minute subset; ``data``: the folder of the public pose graphs (None
+    when not given; a graph may be missing); ``plots``: where PNGs go (linked from the
+    markdown as ``repro_plots/<name>.png``); ``kitti``: a KITTI stereo sequence (or None)."""
 
     quick: bool
-    data: Path
+    data: Path | None
     plots: Path
     repo: Path
+    kitti: Path | None = None
 
     def graph(self, stem: str) -> Path | None:
         """``data/<stem>.g2o`` when it exists (experiments skip a missing graph and say so)."""
+        if self.data is None:
+            return None
         path = self.data / f"{stem}.g2o"
         return path if path.exists() else None
 

@@ -42,9 +42,9 @@ CURVES = (
 )
 
 
-def kitti_folder(ctx: Context) -> Path:
-    """The KITTI clip beside the pose graphs (``../shared/data/kitti_stereo/sequence_1``)."""
-    return ctx.data.parent / "kitti_stereo" / "sequence_1"
+def kitti_folder(ctx: Context) -> Path | None:
+    """The KITTI clip ``bench/reproduce.py --kitti DIR`` names, when it holds ``poses.txt``."""
+    return ctx.kitti if ctx.kitti is not None and (ctx.kitti / "poses.txt").exists() else None
 
 
 def plot(path: Path, title: str, poses: dict[str, np.ndarray], truth: np.ndarray) -> None:
@@ -98,7 +98,7 @@ def run(ctx: Context) -> str:
     drives = QUICK_DRIVES if ctx.quick else FULL_DRIVES
     rows = [vo.run_drive(name, 0, WIDTH_PX) for name in drives]
     folder = kitti_folder(ctx)
-    kitti = vo_kitti.run_kitti(folder) if (folder / "poses.txt").exists() else None
+    kitti = vo_kitti.run_kitti(folder) if folder is not None else None
 
     out = [
         "Seed: thesis §2.5, Table 2.1 (CPU ms per frame on a 2 GHz Pentium 4M, 160×120 "
@@ -167,7 +167,8 @@ def run(ctx: Context) -> str:
             f"{100 * kitti.deferred:.1f}% |"
         )
     else:
-        out.append(f"| KITTI clip | not found at `{folder}` | | | | | | |")
+        out.append("| KITTI clip | not given (`--kitti DIR`) or without `poses.txt` "
+                   "| | | | | | |")
 
     # Figures.
     out += ["", "### Trajectories", ""]

@@ -16,11 +16,9 @@ from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, chi2, make_graph, od
 from h2o_slam.io.g2o import read_g2o, write_g2o
 from h2o_slam.io.synthetic import grid3d, manhattan
 
-REPO = Path(__file__).resolve().parents[2]
-# The public graphs when a folder of them is at hand (H2O_POSEGRAPHS, or beside the clone);
-# the tests that read them are skipped otherwise.
-POSEGRAPH_DIRS = [Path(p) for p in (os.environ.get("H2O_POSEGRAPHS", ""),) if p] + [
-    REPO.parent / "shared" / "data" / "posegraphs"]
+# The folder of the public pose graphs, when the environment gives one (H2O_POSEGRAPHS; see
+# bench/README.md for where they come from); the tests that read them are skipped otherwise.
+POSEGRAPHS_ENV = "H2O_POSEGRAPHS"
 
 INFO3 = "1 0 0 1 0 1"
 INFO6 = " ".join(str(v) for v in np.eye(6)[np.triu_indices(6)].astype(int))
@@ -352,7 +350,13 @@ EXPECTED_COUNTS = {
 
 
 def _posegraph_dir() -> Path | None:
-    return next((d for d in POSEGRAPH_DIRS if d.is_dir()), None)
+    """The folder H2O_POSEGRAPHS names (None when it is not set); a name that is not a
+    folder fails, as the graphs were asked for."""
+    folder = os.environ.get(POSEGRAPHS_ENV, "")
+    if not folder:
+        return None
+    assert Path(folder).is_dir(), f"{POSEGRAPHS_ENV}={folder} is not a folder"
+    return Path(folder)
 
 
 def _readme_table(folder: Path) -> dict[str, tuple[int, int, str]]:
@@ -369,7 +373,7 @@ def _readme_table(folder: Path) -> dict[str, tuple[int, int, str]]:
 def test_real_posegraphs(name: str) -> None:
     folder = _posegraph_dir()
     if folder is None:
-        pytest.skip("benchmark pose graphs not found (../shared/data/posegraphs)")
+        pytest.skip("public pose graphs not given (set H2O_POSEGRAPHS to their folder)")
     table = _readme_table(folder)
     if table:
         assert table[name][:2] == EXPECTED_COUNTS[name], "README table changed"
