@@ -215,3 +215,18 @@ def test_false_closures_that_hold_a_stretch_together_are_dropped_together():
     assert np.all(outcome.weights[planted.outlier] == 0.0)
     assert np.all(outcome.weights[~planted.outlier] == 1.0)
     np.testing.assert_allclose(solver.world_poses()[1], optimum.t, atol=1e-4)
+
+
+def test_a_consistent_group_the_map_bends_to_fit_is_refused_as_incompatible():
+    """Groups of 10 consistent false closures on a weakly tied walk: accepting some costs
+    the TLS objective less than leaving them out, so only the joint compatibility test
+    (the place's joint innovation beyond its χ² quantile) turns them away."""
+    graph = manhattan(300, seed=4, loop_probability=0.05, sigma_xy_m=0.2,
+                      sigma_yaw_rad=0.02).graph
+    optimum = solve_exact(graph)
+    planted = plant_outliers(graph, "local_grouped", 20, seed=1, group_size=10, span_m=1.0)
+    result = solve_exact(planted.graph, robust=RobustConfig())
+    assert result.weights is not None
+    assert not np.any(result.weights[planted.outlier] > 0.5)
+    assert np.all(result.weights[~planted.outlier] == 1.0)
+    np.testing.assert_allclose(result.t, optimum.t, atol=1e-4)
