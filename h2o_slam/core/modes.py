@@ -199,13 +199,37 @@ def solve_offline(
     solver, start = build_solver(graph, config, init)
     result = SolveResult(start.R.copy(), start.t.copy(), chi2(start), start=(start.R, start.t))
     order = offline_order(solver)
+    best = _Best(solver, result.chi2_initial)
     for k in range(passes):
         offline_pass(solver, order, d_max)
         result.chi2_per_pass.append(solver.chi2(graph))
+        best.offer(result.chi2_per_pass[-1])
         if progress is not None:
             progress(k + 1, result.chi2_per_pass[-1])
-    result.R, result.t = solver.world_poses()
+    result.R, result.t = best.poses()
     return result
+
+
+class _Best:
+    """The lowest-χ² map a run of passes has visited: the thesis' offline passes settle at
+    a fixed point of their own, which can be worse than the map they started from
+    (measured: ``--passes 10`` after an online run at the optimum took a KITTI graph from
+    1.000 to 7.7 times it), so a run ends on the best map it saw, never a worse one."""
+
+    def __init__(self, solver: H2OSolver, chi2_now: float) -> None:
+        self.solver = solver
+        self.chi2 = chi2_now
+        self.R, self.t = solver.world_poses()
+
+    def offer(self, chi2_now: float) -> None:
+        """The solver's map after a pass, of χ² ``chi2_now``: kept if the best so far."""
+        if chi2_now < self.chi2:
+            self.chi2 = chi2_now
+            self.R, self.t = self.solver.world_poses()
+
+    def poses(self) -> tuple[Array, Array]:
+        """World poses of the best map."""
+        return self.R.copy(), self.t.copy()
 
 
 def solve_exact(
@@ -327,14 +351,16 @@ def solve_online(
         if trace_every and result.idle_steps:
             result.chi2_trace.append((spent, result.chi2_after_idle))
         order = offline_order(h2o.solver)
+        best = _Best(h2o.solver, result.chi2_after_idle)
         for _ in range(passes):
             start = time.perf_counter()
             offline_pass(h2o.solver, order, h2o.online.d_max)
             spent += time.perf_counter() - start
             result.chi2_per_pass.append(h2o.solver.chi2(graph))
+            best.offer(result.chi2_per_pass[-1])
             if trace_every:
                 result.chi2_trace.append((spent, result.chi2_per_pass[-1]))
-        result.R, result.t = h2o.solver.world_poses()
+        result.R, result.t = best.poses()
         result.exact = h2o.converger.state
     finally:
         h2o.close()
