@@ -492,7 +492,12 @@ class H2ONode(Node):
             self.mapper.add_odometry(sample.stamp_ns, np.array([x, y, yaw]))
             self._last_stamp_ns = max(self._last_stamp_ns, sample.stamp_ns)
             self.publish_pose()
+            revision = self.mapper.map_revision()
             self._step(start)
+            if self.mapper.map_revision() != revision:
+                # The step merged a solution (the map moved as a whole): the pose just sent
+                # carries the old map->odom, so the corrected one follows at once.
+                self.publish_pose()
 
         self._guarded("odometry", handle)
 
