@@ -248,3 +248,28 @@ def test_ctrl_c_does_not_print_a_traceback_from_the_worker():
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
     assert parent.returncode == 0, err
     assert "closed, worker alive: False" in out
+
+
+def test_a_worker_that_does_not_exit_is_abandoned_not_raised(tmp_path) -> None:
+    """On a starved machine the worker may not exit within the waits: the shutdown of a
+    node or a solve goes on (it used to raise subprocess.TimeoutExpired from close())."""
+    import multiprocessing
+    import subprocess
+
+    from h2o_slam.core import converge
+
+    class Stuck:
+        killed = False
+
+        def wait(self, timeout: float | None = None) -> int:
+            raise subprocess.TimeoutExpired("worker", timeout or 0.0)
+
+        def kill(self) -> None:
+            self.killed = True
+
+    conn, reply = multiprocessing.Pipe()
+    folder = tmp_path / "shared"
+    folder.mkdir()
+    stuck = Stuck()
+    converge._shutdown(conn, reply, stuck, folder)  # type: ignore[arg-type]
+    assert stuck.killed and not folder.exists()
