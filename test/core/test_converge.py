@@ -268,7 +268,7 @@ def test_a_worker_that_does_not_exit_is_abandoned_not_raised(tmp_path) -> None:
             self.killed = True
 
     conn, reply = multiprocessing.Pipe()
-    folder = tmp_path / "shared"
+    folder = tmp_path / "worker_files"
     folder.mkdir()
     stuck = Stuck()
     converge._shutdown(conn, reply, stuck, folder)  # type: ignore[arg-type]
