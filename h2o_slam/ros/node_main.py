@@ -24,6 +24,12 @@ def run_node(make: Callable[[], Node], name: str,
             return 1
         except KeyboardInterrupt:  # Ctrl-C while starting: a normal stop, no traceback
             return 0
+        except Exception:
+            # Ctrl-C or SIGTERM after rclpy.init shuts the context down under the node being
+            # built, which then fails with "the given context is not valid": a normal stop.
+            if rclpy.ok():
+                raise
+            return 0
         try:
             rclpy.spin(node)
         except (KeyboardInterrupt, ExternalShutdownException):

@@ -71,3 +71,14 @@ def test_ctrl_c_at_any_instant_of_the_start_is_a_quiet_stop(delay_s: float) -> N
             os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 0, err
     assert "Traceback" not in err, err
+
+
+def test_a_signal_while_the_node_is_built_is_a_normal_stop() -> None:
+    """rclpy's handler shuts the context down on SIGINT/SIGTERM; a node still being built
+    then fails with "the given context is not valid" (seen on a busy machine): exit 0."""
+
+    def built_after_the_signal() -> Node:
+        rclpy.shutdown()  # what the signal handler does
+        return Node("built_after_the_signal")
+
+    assert run_node(built_after_the_signal, "test", (), []) == 0
