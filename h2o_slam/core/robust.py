@@ -18,6 +18,13 @@ rejection" (RA-L 2020):
   of every public graph this package is benchmarked on) the answer is the least-squares
   optimum itself.
 
+GNC ends in a local minimum of the TLS cost; local moves that must lower it follow
+(re-admission by place, drops of single closures and of places: :func:`_settle`), and a
+place whose closures are jointly incompatible with the map built without them is dropped
+whatever the TLS cost says (Neira & Tardós's joint compatibility test,
+:func:`_incompatible_place`): a weakly tied map can bend to fit a group of consistent
+false closures for less than the cost of leaving them out.
+
 The weights end binary; :func:`edge_states` names them for reports and diagnostics
 (:class:`EdgeState`). Weights live in the solver's edge table
 (:meth:`~h2o_slam.core.solver.H2OSolver.set_weights`), so every solver path (exact, the
