@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.compiled import kernel
@@ -300,6 +299,8 @@ class WorldSystem:
             return self.factor.solve(data, g)
         except np.linalg.LinAlgError:
             H = self.matrix(data)
+            import scipy.sparse.linalg as spla  # singular systems only: 0.1 s of import
+
             return spla.lsqr(H, g, atol=1e-14, btol=1e-14, iter_lim=10 * self.size)[0]
 
 

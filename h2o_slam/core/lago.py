@@ -66,8 +66,6 @@ from typing import Any
 
 import numpy as np
 from scipy import sparse
-from scipy.sparse import linalg as sla
-from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core import spd
@@ -281,6 +279,10 @@ def spanning_forest(
         :data:`~h2o_slam.core.graph.EARTH` at anchors, shape ``(N,)``; and the index into
         ``(a, b)`` of the edge joining each node to its parent (-1 at anchors).
     """
+    # Imported on use: scipy.sparse.csgraph brings scipy.sparse.linalg, 0.1-0.2 s of every
+    # command's start.
+    from scipy.sparse.csgraph import breadth_first_order, connected_components
+
     a = np.asarray(a, dtype=np.int64)
     b = np.asarray(b, dtype=np.int64)
     m = len(a)
@@ -478,6 +480,8 @@ def solve_spd(matrix: Any, rhs: Array, method: str = "auto") -> Array:
     try:
         if method in ("splu-colamd", "spsolve"):
             matrix = sparse.csc_matrix(matrix)
+            from scipy.sparse import linalg as sla  # only here: 0.1 s of import
+
             x = (sla.splu(matrix, permc_spec="COLAMD").solve(rhs) if method == "splu-colamd"
                  else sla.spsolve(matrix, rhs))
         else:

@@ -40,8 +40,6 @@ from enum import IntEnum
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
-from scipy.special import chdtr, chdtri
 
 from h2o_slam.core.exact import ExactSystem, converge_exact
 from h2o_slam.core.geometry import Array
@@ -52,6 +50,22 @@ from h2o_slam.core.spd import SPDFactor, upper
 
 #: ``restart(weights) -> (R, t)``: a start for the solve with these edge weights.
 Restart = Callable[[Array], tuple[Array, Array]]
+
+
+
+def chdtri(dof: Array | float, tail: float) -> Array:
+    """The χ² quantile with upper tail ``tail``. scipy.special on first use: imported with
+    the module it (and scipy.stats even more) cost every command 0.05-0.7 s of start."""
+    from scipy.special import chdtri as quantile
+
+    return np.asarray(quantile(dof, tail), dtype=float)
+
+
+def chdtr(dof: float, x: float) -> float:
+    """The χ² distribution function (scipy.special on first use, as :func:`chdtri`)."""
+    from scipy.special import chdtr as distribution
+
+    return float(distribution(dof, x))
 
 
 class EdgeState(IntEnum):
@@ -144,8 +158,6 @@ def thresholds(kind: np.ndarray, planar: bool, probability: float) -> Array:
     rel = 3 if planar else 6
     gps = 2 if planar else 3
     dof = np.where(kind == EdgeKind.RELATIVE, rel, np.where(kind == EdgeKind.POSITION, gps, 3))
-    # chdtri: the χ² quantile from the upper tail; scipy.stats would cost every command
-    # 0.3-0.7 s of import.
     return np.asarray(chdtri(dof, 1.0 - probability), dtype=float)
 
 
@@ -483,6 +495,8 @@ def _clusters(a: np.ndarray, b: np.ndarray, ratio: Array) -> list[np.ndarray]:
     k = len(a)
     near = (np.abs(a[:, None] - a[None, :]) <= CLUSTER_SPAN) & (
         np.abs(b[:, None] - b[None, :]) <= CLUSTER_SPAN)
+    from scipy.sparse.csgraph import connected_components  # on use: see chdtri
+
     _, label = connected_components(sp.csr_matrix(near), directed=False)
     groups = [np.flatnonzero(label == g) for g in range(label.max(initial=-1) + 1)]
     groups.sort(key=lambda g: float(np.min(ratio[g])) if k else 0.0)

@@ -25,7 +25,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core import interpolate
@@ -750,4 +749,6 @@ def _solve_regularized(J: sp.csr_matrix, r: Array, B: Array) -> Array:
     try:
         return -SPDFactor(U.indptr, U.indices).solve(U.data, g)
     except np.linalg.LinAlgError:  # an unconstrained direction: the minimum-norm step
+        import scipy.sparse.linalg as spla  # singular systems only: 0.1 s of import
+
         return -spla.lsqr(H, g, atol=1e-14, btol=1e-14, iter_lim=10 * H.shape[0])[0]

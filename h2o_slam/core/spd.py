@@ -28,7 +28,6 @@ from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from h2o_slam.core.geometry import Array
 
@@ -130,6 +129,8 @@ class SPDFactor:
         try:
             # Symmetric mode without pivoting keeps the minimum-degree ordering's sparsity:
             # with SuperLU's default partial pivoting a 15 000-unknown sphere takes 80 s.
+            import scipy.sparse.linalg as spla  # the fallback only: 0.1 s of import
+
             lu = spla.splu(full, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                            options={"SymmetricMode": True})
             x = np.asarray(lu.solve(np.asarray(rhs, dtype=float)), dtype=float)
