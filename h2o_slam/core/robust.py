@@ -147,6 +147,17 @@ def lago_restart(graph: PoseGraph) -> Restart:
     return start
 
 
+def chordal_restart(graph: PoseGraph) -> Restart:
+    """The chordal initialization (:mod:`h2o_slam.core.chordal`) of the 3-D ``graph``'s
+    relative edges, each weighted (0: left out): the 3-D sibling of :func:`lago_restart`."""
+    from h2o_slam.core.chordal import chordal
+
+    def start(weights: Array) -> tuple[Array, Array]:
+        return chordal(graph, weights)
+
+    return start
+
+
 def odometry_edges(kind: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Relative edges between consecutive poses: the odometry chain of a g2o graph and of
     :class:`~h2o_slam.ros.mapper.Mapper`'s keyframes (trusted by the robust solve)."""

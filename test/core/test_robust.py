@@ -230,3 +230,20 @@ def test_a_consistent_group_the_map_bends_to_fit_is_refused_as_incompatible():
     assert not np.any(result.weights[planted.outlier] > 0.5)
     assert np.all(result.weights[~planted.outlier] == 1.0)
     np.testing.assert_allclose(result.t, optimum.t, atol=1e-4)
+
+
+def test_a_3d_map_caught_in_a_local_minimum_restarts_from_the_chordal_start():
+    """A noisy 3-D grid with 100 false closures against ~100 true: from the odometry the
+    graduation ends with true closures dropped on a wrongly folded map; re-admissions from
+    the chordal initialization of the decisions (the 3-D sibling of LAGO) reach the
+    outlier-free map."""
+    from h2o_slam.io.synthetic import grid3d
+
+    graph = grid3d(125, seed=4, sigma_rot_rad=0.1, sigma_xyz_m=0.1).graph
+    optimum = solve_exact(graph)
+    planted = plant_outliers(graph, "random", 100, seed=1)
+    result = solve_exact(planted.graph, robust=RobustConfig())
+    assert result.weights is not None
+    assert not np.any(result.weights[planted.outlier] > 0.5)
+    assert np.all(result.weights[~planted.outlier] == 1.0)
+    np.testing.assert_allclose(result.t, optimum.t, atol=1e-4)
