@@ -22,7 +22,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from h2o_slam.core import geometry as geo
+from h2o_slam.core.chordal import chordal
 from h2o_slam.core.converge import ConvergeState
+from h2o_slam.core.errors import InputError
 from h2o_slam.core.exact import converge_exact
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, chi2, edge_chi2
@@ -97,7 +99,7 @@ class SolveResult:
         return self.chi2_per_pass[-1] if self.chi2_per_pass else self.chi2_initial
 
 
-INITS = ("input", "tree", "lago")
+INITS = ("input", "tree", "lago", "chordal")
 
 #: Most Gauss–Newton iterations of exact mode by default: a cap that converged graphs
 #: never reach (they stop at ``SolverConfig.exact_tolerance``, typically within 10–30).
@@ -116,7 +118,9 @@ def build_solver(
     ``init="input"`` starts from the graph's estimate (its vertices, or the odometry chain);
     ``init="tree"`` starts, as the thesis does (3.4.2), from the tree edges' measurements
     concatenated down from the root, so that every tree edge starts with zero error;
-    ``init="lago"`` starts from the LAGO linear approximation (planar graphs only).
+    ``init="lago"`` starts from the LAGO linear approximation (planar graphs only);
+    ``init="chordal"`` from the chordal initialization, rotations first (3-D graphs only:
+    :mod:`h2o_slam.core.chordal`).
     ``regularizer=False`` skips building ``B`` (exact mode never reads it). ``trusted``: edges
     the spanning tree is grown from first (the odometry of a robust solve, so that a false
     loop closure never becomes a tree edge and places the start).
@@ -134,6 +138,10 @@ def build_solver(
         # LAGO starts from the relative edges; GPS edges are H₂O's to relax afterwards.
         start = lago(graph, ignore_global=True)
         graph = graph.with_estimate(start.R, start.t)
+    elif init == "chordal":
+        if graph.planar:
+            raise InputError("the chordal initialization is for 3-D graphs; planar ones have LAGO")
+        graph = graph.with_estimate(*chordal(graph))
     return H2OSolver.from_graph(graph, parents, config, regularizer), graph
 
 

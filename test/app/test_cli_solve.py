@@ -322,3 +322,19 @@ def test_a_fast_solve_of_a_slowly_read_file_prints_no_progress(planar_file, tmp_
     code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--solver", solver],
                        capsys)
     assert code == 0 and err == [], err
+
+
+def test_init_chordal_starts_a_3d_graph_near_the_optimum(tmp_path, capsys):
+    """``--init chordal``: rotations first, no guess; a planar file is refused in one line."""
+    graph = grid3d(60, seed=2, sigma_rot_rad=0.1).graph
+    src, out, report = tmp_path / "g.g2o", tmp_path / "o.g2o", tmp_path / "r.json"
+    write_g2o(src, graph)
+    assert main([str(src), "-o", str(out), "--init", "chordal", "--report", str(report),
+                 "--robust", "off"]) == 0
+    data = json.loads(report.read_text())
+    assert data["init"] == "chordal"
+    assert data["chi2_initial"] < 3.0 * data["chi2_final"]  # the start is near the optimum
+    planar = tmp_path / "p.g2o"
+    write_g2o(planar, manhattan(30, seed=1).graph)
+    assert main([str(planar), "-o", str(out), "--init", "chordal"]) == 1
+    assert "chordal initialization is for 3-D graphs" in capsys.readouterr().err

@@ -1,7 +1,7 @@
 """``h2o-solve``: optimize a g2o pose graph with H₂O (or LAGO) and write the solution and a report.
 
     h2o-solve INPUT.g2o --output OUT.g2o [--mode exact|offline|online] [--passes N]
-              [--tolerance T] [--init tree|input|lago] [--solver h2o|lago] [--d-max N]
+              [--tolerance T] [--init tree|input|lago|chordal] [--solver h2o|lago] [--d-max N]
               [--budget-ms X] [--gps-batch-size N] [--gps-every K --gps-sigma S]
               [--metric h2o|gtsam|g2o] [--report REPORT.json] [--trace TRACE.json]
               [--idle-s S] [--samples N] [--period-ms P] [--quiet]
