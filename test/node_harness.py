@@ -115,3 +115,19 @@ class Harness:
         del self.executor, self.tester, self.context, self._publishers
         gc.unfreeze()
         gc.collect()
+
+
+def info_lines(monkeypatch: Any) -> list[str]:
+    """Every rclpy logger info line from now on, as the node's code wrote it (the logger
+    still prints them); ``monkeypatch`` is pytest's, which undoes the spy."""
+    from rclpy.impl.rcutils_logger import RcutilsLogger
+
+    lines: list[str] = []
+    info = RcutilsLogger.info
+
+    def spy(self: RcutilsLogger, message: str, **kwargs: Any) -> Any:
+        lines.append(message)
+        return info(self, message, **kwargs)
+
+    monkeypatch.setattr(RcutilsLogger, "info", spy)
+    return lines

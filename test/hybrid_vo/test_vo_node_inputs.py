@@ -9,8 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 from nav_msgs.msg import Odometry
-from node_harness import Harness
-from rclpy.impl.rcutils_logger import RcutilsLogger
+from node_harness import Harness, info_lines
 from sensor_msgs.msg import Image
 
 import msg_adapters as ma
@@ -82,14 +81,7 @@ def test_images_unpaired_refused_or_reset_away_are_accounted_for(harness: Harnes
 
 def test_start_up_says_the_node_is_ready_with_its_topics(
         harness: Harness, monkeypatch: pytest.MonkeyPatch) -> None:
-    lines: list[str] = []
-    info = RcutilsLogger.info
-
-    def spy(self: RcutilsLogger, message: str, **kwargs: Any) -> Any:
-        lines.append(message)
-        return info(self, message, **kwargs)
-
-    monkeypatch.setattr(RcutilsLogger, "info", spy)
+    lines = info_lines(monkeypatch)
     harness.add(HybridVoNode)
     ready = [line for line in lines if "ready" in line]
     assert len(ready) == 1, lines

@@ -9,8 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 from nav_msgs.msg import Odometry
-from node_harness import Harness
-from rclpy.impl.rcutils_logger import RcutilsLogger
+from node_harness import Harness, info_lines
 from rclpy.parameter import Parameter
 from std_srvs.srv import SetBool
 
@@ -161,14 +160,7 @@ def test_a_held_closure_refused_when_odometry_reaches_it_counts_as_rejected(
 
 def test_start_up_says_the_node_is_ready_with_its_topics_and_budget(
         harness: Harness, monkeypatch: pytest.MonkeyPatch) -> None:
-    lines: list[str] = []
-    info = RcutilsLogger.info
-
-    def spy(self: RcutilsLogger, message: str, **kwargs: Any) -> Any:
-        lines.append(message)
-        return info(self, message, **kwargs)
-
-    monkeypatch.setattr(RcutilsLogger, "info", spy)
+    lines = info_lines(monkeypatch)
     node = harness.add(H2ONode, parameter_overrides=[Parameter("budget_ms", value=3.0)])
     ready = [line for line in lines if "ready" in line]
     assert len(ready) == 1, lines
