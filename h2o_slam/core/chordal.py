@@ -19,6 +19,7 @@ import scipy.sparse as sp
 from h2o_slam.core.errors import GraphError
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EdgeKind, PoseGraph
+from h2o_slam.core.spd import SPDFactor, upper
 
 
 def chordal(graph: PoseGraph, weights: Array | None = None) -> tuple[Array, Array]:
@@ -48,7 +49,7 @@ def _rotations(n: int, a: np.ndarray, b: np.ndarray, meas_R: Array, w: Array) ->
     m = len(a)
     rows = np.arange(3 * m).reshape(m, 3)
     # u_b: identity blocks; u_a: −R_abᵀ blocks.
-    r_b = np.repeat(rows, 1, axis=0).ravel()
+    r_b = rows.ravel()
     c_b = (3 * b[:, None] + np.arange(3)).ravel()
     v_b = np.ones(3 * m)
     r_a = np.repeat(rows[:, :, None], 3, axis=2).ravel()
@@ -77,20 +78,17 @@ def _anchored_least_squares(A: sp.csr_matrix, B: Array, w: Array, block: int,
                             anchor: Array, n: int) -> Array:
     """``min Σ w (A X − B)²`` with node 0's ``block`` unknowns fixed to ``anchor``; returns
     every node's unknowns ``(n·block, k)``."""
-    from scipy.sparse.linalg import factorized  # on use: 0.1 s of import
-
     A = A.tocsc()
     fixed = A[:, :block]
     free = A[:, block:]
     rhs = B - fixed @ anchor
     W = sp.diags(w)
-    H = (free.T @ W @ free).tocsc()
-    g = free.T @ (W @ rhs)
-    try:
-        solve = factorized(H)
-    except RuntimeError as err:  # "Factor is exactly singular"
+    U = upper(free.T @ W @ free)
+    g = np.asarray(free.T @ (W @ rhs))
+    try:  # the exact mode's sparse Cholesky (CHOLMOD where installed)
+        X = SPDFactor(U.indptr, U.indices).solve(U.data, g).reshape(-1, rhs.shape[1])
+    except np.linalg.LinAlgError as err:
         raise GraphError(f"the edges do not connect every node to node 0 ({err})") from None
-    X = np.column_stack([solve(np.ascontiguousarray(g[:, k])) for k in range(rhs.shape[1])])
     if not np.all(np.isfinite(X)):
         raise GraphError("the edges do not connect every node to node 0")
     return np.vstack([anchor, X]).reshape(n * block, -1)

@@ -471,9 +471,6 @@ class H2ONode(Node):
     def _idle_timer(self) -> None:
         if not warmup.is_ready():
             return
-        if self._held:  # the kernels are ready and no input came since
-            self._release_held()
-            return
         if self.behind():
             self.idle_yielded += 1
             return
