@@ -425,12 +425,7 @@ class H2ONode(Node):
         self.times.add(elapsed_ms, None if self.paused or budget_ms == 0.0 else budget_ms)
 
     def _step(self, start: float) -> None:
-        budget_ms = float(self.p("budget_ms"))
-        if budget_ms == 0.0:
-            self.mapper.step(None)
-        else:
-            left_s = 1e-3 * budget_ms - (time.perf_counter() - start)
-            self.mapper.step(max(left_s, 0.0))
+        self.mapper.callback_step(start)
         self._graph_dirty = True
 
     def idle_step(self) -> None:

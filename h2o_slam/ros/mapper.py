@@ -36,6 +36,7 @@ from __future__ import annotations
 import bisect
 import math
 import os
+import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
@@ -218,6 +219,10 @@ class Keyframes:
     stamps: list[int] = field(default_factory=list)
     odom: list[Array] = field(default_factory=list)
     chain_cov: list[Array] = field(default_factory=list)
+    # Running sums behind :meth:`path_covariance`, extended on demand: entry k sums the
+    # increments 1..k as W Σ Wᵀ, and counts the chain breaks among them.
+    _sums: Array = field(default_factory=lambda: np.zeros((1, 3, 3)), repr=False)
+    _breaks: Array = field(default_factory=lambda: np.zeros(1, dtype=np.int64), repr=False)
 
     def nearest(self, stamp_ns: int) -> tuple[int, float]:
         """Index of the keyframe nearest in time, and the gap in seconds."""
@@ -227,6 +232,40 @@ class Keyframes:
         candidates = [k for k in (j - 1, j) if 0 <= k < len(stamps)]
         i = min(candidates, key=lambda k: (abs(stamps[k] - stamp_ns), k))
         return i, abs(int(stamps[i]) - stamp_ns) * 1e-9
+
+    def path_covariance(self, lo: int, hi: int) -> Array | None:
+        """Dead-reckoning covariance of keyframe ``hi`` relative to ``lo`` (``lo < hi``), in
+        ``hi``'s frame: the increments ``lo+1 .. hi`` carried to ``hi`` and summed; ``None``
+        where the chain breaks between them.
+
+        Carrying increment k to the end is ``Ad(T_k⁻¹ T_hi)⁻¹ = D_hi E_hi W_k``, with
+        ``W_k = [[R_k, −J p_k], [0, 1]]``, ``E = [[I, J p_hi], [0, 1]]`` and ``D = diag(R_hiᵀ,
+        1)`` (J the 90° rotation), so the sum is ``D E (S_hi − S_lo) Eᵀ Dᵀ`` over running
+        sums ``S_k = Σ W Σ Wᵀ``: constant time for a closure across any loop."""
+        self._extend()
+        if self._breaks[hi] != self._breaks[lo]:
+            return None
+        x, y, yaw = self.odom[hi]
+        c, s = math.cos(yaw), math.sin(yaw)
+        carry = np.array([[c, s, -c * y + s * x], [-s, c, s * y + c * x], [0.0, 0.0, 1.0]])
+        return carry @ (self._sums[hi] - self._sums[lo]) @ carry.T
+
+    def _extend(self) -> None:
+        done, n = len(self._sums), len(self.chain_cov)
+        if done > n:  # the lists were replaced (a load): start over
+            self._sums, self._breaks, done = self._sums[:1], self._breaks[:1], 1
+        if done >= n:
+            return
+        cov = np.asarray(self.chain_cov[done:n], dtype=float).reshape(-1, 3, 3)
+        poses = np.asarray(self.odom[done:n], dtype=float).reshape(-1, 3)
+        broken = np.isnan(cov).any(axis=(1, 2))
+        c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+        w = np.zeros((len(poses), 3, 3))
+        w[:, 0, 0], w[:, 0, 1], w[:, 1, 0], w[:, 1, 1] = c, -s, s, c
+        w[:, 0, 2], w[:, 1, 2], w[:, 2, 2] = poses[:, 1], -poses[:, 0], 1.0
+        terms = np.einsum("kij,kjl,kml->kim", w, np.where(broken[:, None, None], 0.0, cov), w)
+        self._sums = np.concatenate([self._sums, self._sums[-1] + np.cumsum(terms, axis=0)])
+        self._breaks = np.concatenate([self._breaks, self._breaks[-1] + np.cumsum(broken)])
 
 
 class Mapper:
@@ -464,15 +503,11 @@ class Mapper:
         if not math.isfinite(self.config.loop_gate_chi2):
             return True
         lo, hi = min(a, b), max(a, b)
-        chain = np.asarray(self.keyframes.chain_cov[lo + 1: hi + 1])
-        if len(chain) == 0 or np.isnan(chain).any():
+        path_cov = self.keyframes.path_covariance(lo, hi)
+        if path_cov is None:
             return True  # ends in different subtrees: nothing to weigh the error against
-        odom = np.asarray(self.keyframes.odom[lo: hi + 1])
-        to_end = planar_between(odom[1:], odom[-1][None, :])
-        ad = _adjoint_inverse(to_end)
-        path_cov = np.einsum("kij,kjl,kml->im", ad, chain, ad)
         if a > b:  # the path covariance was built in the later node's frame
-            d = planar_between(odom[-1], odom[0])
+            d = planar_between(self.keyframes.odom[hi], self.keyframes.odom[lo])
             ad_swap = _adjoint_inverse(d[None, :])[0]
             path_cov = ad_swap @ path_cov @ ad_swap.T
         R_a, t_a = self.h2o.solver.world_pose(a)
@@ -576,6 +611,15 @@ class Mapper:
             self.h2o.online = replace(self.h2o.online, d_max=self.config.d_max)
         self.last_report = self.h2o.step(budget_s)
         return self.last_report
+
+    def callback_step(self, started_s: float) -> StepReport:
+        """The step that ends an input's callback: what is left of ``budget_ms`` since the
+        callback began at ``started_s`` (``time.perf_counter()``), so the callback as a whole
+        keeps the budget (``budget_ms`` of ``None``: no limit)."""
+        if self.config.budget_ms is None:
+            return self.step(None)
+        left_s = 1e-3 * self.config.budget_ms - (time.perf_counter() - started_s)
+        return self.step(max(left_s, 0.0))
 
     def exact_solve(self) -> tuple[float, float]:
         """Solve the graph exactly now (damped Gauss–Newton to convergence) and merge it;

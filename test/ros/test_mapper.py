@@ -12,6 +12,7 @@ import pytest
 from h2o_slam.core.errors import InputError
 from h2o_slam.core.geometry import planar_between, planar_compose
 from h2o_slam.ros.mapper import (
+    Keyframes,
     Mapper,
     MapperConfig,
     _adjoint_inverse,
@@ -140,6 +141,36 @@ def test_path_covariance_matches_numerical_propagation() -> None:
                 bumped.append(planar_compose(bumped[-1], d))
             jac[:, k] = planar_between(end, bumped[-1]) / 1e-6
         np.testing.assert_allclose(ad, jac, atol=1e-5)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_running_path_covariance_equals_the_sum_over_the_chain(seed: int) -> None:
+    """The constant-time path covariance (running sums) against the per-increment sum
+    Σ Ad(T_k⁻¹T_hi) Σ_k Ad(T_k⁻¹T_hi)ᵀ checked above, far from the origin and across a
+    chain break, grown in pieces as keyframes arrive."""
+    rng = np.random.default_rng(seed)
+    kf = Keyframes()
+    pose = np.array([3e3, -2e3, 1.0])
+    for k in range(60):
+        pose = planar_compose(pose, rng.normal(0.0, [1.0, 0.3, 0.4]))
+        a = rng.normal(size=(3, 3)) * [0.1, 0.1, 0.01]
+        kf.odom.append(pose)
+        broken = k in (0, 41)
+        kf.chain_cov.append(np.full((3, 3), np.nan) if broken else a @ a.T + 1e-6 * np.eye(3))
+        if k and k % 7 == 0:
+            kf.path_covariance(0, k)  # extends the sums part way
+    for lo, hi in [(0, 1), (0, 40), (3, 17), (39, 40), (40, 41), (41, 59), (10, 50)]:
+        odom = np.asarray(kf.odom[lo: hi + 1])
+        ad = _adjoint_inverse(planar_between(odom[1:], odom[-1][None, :]))
+        chain = np.asarray(kf.chain_cov[lo + 1: hi + 1])
+        got = kf.path_covariance(lo, hi)
+        if np.isnan(chain).any():
+            assert got is None
+        else:
+            want = np.einsum("kij,kjl,kml->im", ad, chain, ad)
+            # Running sums lose ~eps·|p|²·n to cancellation (km from the origin here): a
+            # gate needs far less.
+            np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-12)
 
 
 def test_stamp_references_are_carried_onto_keyframes() -> None:
