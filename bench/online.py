@@ -1,22 +1,27 @@
 """Benchmark: how close H₂O's budgeted online map stays to the optimum, against GTSAM's iSAM2,
-both fed the public pose graphs one callback per arriving pose (issue 11).
+both fed the public pose graphs one callback per arriving pose (issues 11 and 25).
 
     .venv/bin/python bench/online.py [--data DIR] [--graphs NAME ...] [--budgets MS ...]
                                      [--timeout S] [--output-dir DIR] [--skip-isam2]
-                                     [--results FILE] [--plots DIR]
+                                     [--period-ms MS] [--busy N] [--plots DIR]
+                                     [--results FILE | --no-results]
 
 Protocol, per graph:
 
 1. Sample points: the poses ``h2o_slam.core.modes.sample_points(graph, 20)`` returns (20 spread
    over the stream and up to 20 that close a loop). A sample after pose ``k`` covers the
    first ``k+1`` poses and the edges among them (:func:`h2o_slam.core.modes.prefix_graph`).
+   A sample is at a closure when pose ``k`` brings one (:func:`closing_poses`: the newest
+   end of a relative edge between poses more than one apart), whether ``sample_points``
+   picked it as a closure or as one of the spread poses.
 2. Exact prefix optima, computed once per graph and shared by every budget:
    ``solve_exact(prefix_graph(graph, k+1), iterations=100).chi2_final`` at every sample.
 3. H₂O: ``h2o-solve --mode online --budget-ms B --passes 0 --idle-s 1 --samples 20`` at each
    budget (a subprocess of the real tool, with ``--report`` and ``--trace``). The report
    gives χ² of the edges so far at every sample, χ² at the end of the stream, χ² after the
    1 s of budgeted idle steps, and the exact solves that ran beside the updates; the trace
-   gives every callback's wall time.
+   gives every callback's wall time. With ``--busy N``, N CPU-bound processes
+   (:func:`busy`) run beside all of a graph's H₂O and iSAM2 runs (steps 3 and 4).
 4. GTSAM ``ISAM2`` fed the same arrivals (:func:`h2o_slam.core.modes.arrivals`: at pose ``k``
    every edge whose newest pose is ``k``) in this process, one ``update`` per pose. After
    the update of a sampled pose, outside its timed region, the χ² of the edges so far at
@@ -28,17 +33,25 @@ Protocol, per graph:
    the full graph is the one at the last sample (the last pose is always sampled).
 6. The optimality ratio r = χ²(edges so far, estimate) / optimum at each sample. Where the
    optimum is ~0 (under ``ZERO_CHI2``: no loop closed yet, every estimate fits the tree
-   exactly) r is 1 if H₂O's χ² is also ~0, else infinite.
+   exactly) r is 1 if H₂O's χ² is also ~0, else infinite. Per run: median and p95 of r over
+   the samples, median and max of r over the samples at a closure (r right after the
+   callback that brought it), r at the end of the stream and after idle.
+7. Targets at 5 ms (``TARGET_BUDGET_MS``): issue 11's (r after idle ≤ 1.05, median r ≤ 1.5,
+   p99 ≤ budget, max ≤ 2× budget, no worse at a larger budget, finishes where iSAM2 fails)
+   and issue 25's, near the optimum at every instant (p95 r ≤ 1.5; r after a closure ≤ 2
+   median and ≤ 10 max). Under ``--busy`` the ones that count are r after idle and p99.
 
 Every χ² is the one evaluator :func:`h2o_slam.core.graph.edge_chi2` summed over the edges
-received so far. The tables go to stdout and replace the section ``## Online
-(bench/online.py)`` of ``bench/RESULTS.md`` (other sections are kept); one PNG per graph,
-r against poses received, goes to ``bench/plots/online_<graph>.png``.
+received so far. The tables go to stdout and, unless ``--no-results``, replace the section
+``## Online (bench/online.py)`` of ``bench/RESULTS.md`` (other sections are kept); one PNG
+per graph, r against poses received, goes to ``bench/plots/online_<graph>.png``
+(``--plots DIR``: ``DIR/online_<graph>.png``).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as dt
 import importlib.util
 import json
@@ -47,6 +60,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
@@ -63,7 +77,7 @@ from results_md import (
 )
 
 from h2o_slam.core.errors import H2OError
-from h2o_slam.core.graph import PoseGraph, chi2, edge_chi2
+from h2o_slam.core.graph import EdgeKind, PoseGraph, chi2, edge_chi2
 from h2o_slam.core.modes import arrivals, prefix_graph, sample_points, solve_exact
 from h2o_slam.io.g2o import read_g2o
 
@@ -98,11 +112,26 @@ PERIOD_MS = 20.0
 EXACT_ITERATIONS = 100
 #: Below this χ² an optimum counts as zero (a tree of edges, fitted exactly).
 ZERO_CHI2 = 1e-6
-#: Targets of issue 11, judged at this budget.
+#: Targets of issues 11 and 25, judged at this budget.
 TARGET_BUDGET_MS = 5.0
 IDLE_TARGET = 1.05  # r after idle
 MEDIAN_TARGET = 1.5  # median r over the samples
 MAX_TARGET = 2.0  # largest callback, in budgets
+#: Issue 25, "near the optimum at every instant": r right after a loop-closure callback
+#: (median and max over the samples whose pose closes a loop) and p95 r over the stream.
+CLOSURE_MEDIAN_TARGET = 2.0
+CLOSURE_MAX_TARGET = 10.0
+P95_TARGET = 1.5
+#: ``--busy``: a CPU-bound process run beside the solvers (a robot's computer is never idle),
+#: ``python -c BUSY_CODE PARENT_PID``. It spins until its parent is gone, so that an orphan
+#: (the benchmark killed outright) stops by itself within a fraction of a second.
+BUSY_CODE = """\
+import os, sys
+parent = int(sys.argv[1])
+while os.getppid() == parent:
+    for _ in range(1_000_000):
+        pass
+"""
 #: A larger budget may be this much worse (timing noise) and still count as no worse.
 NOISE = 1.01
 #: iSAM2 counts as diverged when the χ² of the edges fed so far exceeds this multiple of the
@@ -216,6 +245,7 @@ class GraphOnline:
     h2o: list[H2OOnlineRun]
     isam2: ISAM2Run | None
     ref: Reference
+    closing: np.ndarray  # (S,) bool: the sample's pose brings a loop closure
     plot: Path | None = None
 
     def r(self, run: H2OOnlineRun) -> np.ndarray:
@@ -226,6 +256,12 @@ class GraphOnline:
     def isam2_r(self) -> np.ndarray:
         """iSAM2's own r at each sample point (1 where it is the optimum; nan where absent)."""
         return ratio(self.ref.isam2, self.ref.optimum)
+
+    def after_closure(self, r: np.ndarray) -> tuple[float, float]:
+        """Median and max of ``r`` (shape ``(S,)``) over the samples that close a loop (nan
+        where there is none, or none with a value)."""
+        at = r[self.closing]
+        return _percentile(at, 50), _percentile(at, 100)
 
 
 def ratio(value: np.ndarray | float, optimum: np.ndarray | float) -> np.ndarray:
@@ -441,6 +477,42 @@ def run_isam2(graph: PoseGraph, timeout_s: float, sample_nodes: set[int]) -> ISA
     return result("ok", None, chi2(graph, R, t))
 
 
+# --- loop closures and load ------------------------------------------------------------------
+
+
+def closing_poses(graph: PoseGraph) -> np.ndarray:
+    """Poses that bring a loop closure, increasing: the newest end of every relative edge
+    between poses more than one apart (the set ``sample_points`` picks its closure samples
+    from; an edge to the pose just before is odometry)."""
+    relative = graph.kind == EdgeKind.RELATIVE
+    loop = relative & (np.abs(graph.a - graph.b) > 1)
+    return np.unique(np.maximum(graph.a, graph.b)[loop])
+
+
+def closing_samples(graph: PoseGraph, points: Sequence[int]) -> np.ndarray:
+    """Which sample points (pose indices, shape ``(S,)``) close a loop, as booleans: the
+    evenly spread ones may or may not, the ones picked at closures all do."""
+    return np.isin(np.asarray(points, dtype=int), closing_poses(graph))
+
+
+@contextlib.contextmanager
+def busy(count: int) -> Iterator[list[subprocess.Popen[bytes]]]:
+    """``count`` CPU-bound Python processes (``BUSY_CODE``) for the ``with`` body; killed and
+    reaped when it ends, also on an exception or ``KeyboardInterrupt``."""
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        for _ in range(count):
+            procs.append(subprocess.Popen(
+                [sys.executable, "-c", BUSY_CODE, str(os.getpid())], stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        yield procs
+    finally:
+        for proc in procs:
+            proc.kill()
+        for proc in procs:
+            proc.wait()
+
+
 # --- the optimum -------------------------------------------------------------------------------
 
 
@@ -475,9 +547,11 @@ def build_reference(nodes: np.ndarray, exact: np.ndarray, converged: np.ndarray,
 
 
 def bench_graph(path: Path, out_dir: Path, budgets_ms: list[float], timeout_s: float,
-                skip_isam2: bool, plots: Path | None,
-                period_ms: float = PERIOD_MS) -> GraphOnline:
-    """Run every solver on one graph file (and plot it when ``plots`` is given)."""
+                skip_isam2: bool, plots: Path | None, period_ms: float = PERIOD_MS,
+                busy_count: int = 0) -> GraphOnline:
+    """Run every solver on one graph file (and plot it when ``plots`` is given), with
+    ``busy_count`` CPU-bound processes beside the H₂O and iSAM2 runs (not the exact prefix
+    solves, which are not timed)."""
     graph = read_g2o(path)
 
     def log(msg: str) -> None:
@@ -485,27 +559,32 @@ def bench_graph(path: Path, out_dir: Path, budgets_ms: list[float], timeout_s: f
 
     points = sample_points(graph, SAMPLES)
     nodes = np.asarray(points, dtype=int) + 1
-    log(f"{graph.num_nodes} nodes, {graph.num_edges} edges; exact optima of {len(nodes)} "
-        "prefixes ...")
+    closing = closing_samples(graph, points)
+    log(f"{graph.num_nodes} nodes, {graph.num_edges} edges; {len(nodes)} samples, "
+        f"{int(closing.sum())} at a loop closure; exact optima of the prefixes ...")
     tic = time.perf_counter()
     exact, converged = exact_prefix_optima(graph, nodes)  # shared by every budget
     exact_s = time.perf_counter() - tic
     log(f"exact prefixes: {exact_s:.1f} s; full graph χ² {exact[-1]:.6g}")
     h2o = []
-    for budget in budgets_ms:
-        log(f"H₂O online at {budget:g} ms, {IDLE_S:g} s idle ...")
-        run = run_h2o_online(graph, path, out_dir, budget, timeout_s, period_ms)
-        log(f"{run.label}: {run.status}; max {run.times.max:.3g} ms; χ² end of stream "
-            f"{run.chi2_end_of_stream:.6g}, after idle {run.chi2_after_idle:.6g}")
-        h2o.append(run)
     isam2 = None
-    if not skip_isam2:
-        log("GTSAM iSAM2 ...")
-        isam2 = run_isam2(graph, timeout_s, set(points))
-        log(f"iSAM2: {isam2.status}; max {isam2.times.max:.3g} ms; χ² {isam2.chi2_final:.6g}")
+    if busy_count:
+        log(f"{busy_count} CPU-bound processes beside the runs")
+    with busy(busy_count):
+        for budget in budgets_ms:
+            log(f"H₂O online at {budget:g} ms, {IDLE_S:g} s idle ...")
+            run = run_h2o_online(graph, path, out_dir, budget, timeout_s, period_ms)
+            log(f"{run.label}: {run.status}; max {run.times.max:.3g} ms; χ² end of stream "
+                f"{run.chi2_end_of_stream:.6g}, after idle {run.chi2_after_idle:.6g}")
+            h2o.append(run)
+        if not skip_isam2:
+            log("GTSAM iSAM2 ...")
+            isam2 = run_isam2(graph, timeout_s, set(points))
+            log(f"iSAM2: {isam2.status}; max {isam2.times.max:.3g} ms; "
+                f"χ² {isam2.chi2_final:.6g}")
     ref = build_reference(nodes, exact, converged, exact_s, isam2)
     result = GraphOnline(path.stem, graph.num_nodes, graph.num_edges, graph.planar,
-                         chi2(graph), h2o, isam2, ref)
+                         chi2(graph), h2o, isam2, ref, closing)
     if plots is not None:
         result.plot = plot_graph(result, plots / f"online_{path.stem}.png")
         log(f"plot: {result.plot}")
@@ -608,21 +687,25 @@ class RunSummary:
     p95: float
     end_of_stream: float
     after_idle: float
+    closure_median: float  # median r over the samples that close a loop
+    closure_max: float  # max r over them
 
 
 def summarize(r: GraphOnline, run: H2OOnlineRun) -> RunSummary:
-    """Median and p95 of r over the samples; r at the end of the stream and after idle."""
+    """Median and p95 of r over the samples; r at the end of the stream and after idle;
+    median and max of r over the samples that close a loop."""
     if run.status != "ok":
-        return RunSummary(*[float("nan")] * 4)
+        return RunSummary(*[float("nan")] * 6)
     ratios = r.r(run)
     return RunSummary(_percentile(ratios, 50), _percentile(ratios, 95),
                       float(ratio(run.chi2_end_of_stream, r.ref.full)),
-                      float(ratio(run.chi2_after_idle, r.ref.full)))
+                      float(ratio(run.chi2_after_idle, r.ref.full)), *r.after_closure(ratios))
 
 
 @dataclass
 class Targets:
-    """The targets of issue 11 on one graph, at ``TARGET_BUDGET_MS`` (``None``: not judged)."""
+    """The targets of issues 11 and 25 on one graph, at ``TARGET_BUDGET_MS`` (``None``: not
+    judged)."""
 
     after_idle: bool | None
     median: bool | None
@@ -630,6 +713,9 @@ class Targets:
     max: bool | None
     monotone: bool | None  # r after idle and median r no worse at a larger budget
     survives: bool | None  # H₂O finishes where iSAM2 fails
+    closure_median: bool | None = None  # median r after a closure (None: no closing sample)
+    closure_max: bool | None = None  # max r after a closure (None: no closing sample)
+    p95: bool | None = None  # p95 r over the stream
 
 
 def targets(r: GraphOnline) -> Targets:
@@ -638,14 +724,18 @@ def targets(r: GraphOnline) -> Targets:
     if run is None:
         return Targets(None, None, None, None, _monotone(r), None)
     if run.status != "ok":
-        return Targets(False, False, False, False, False, False)
+        return Targets(*[False] * 9)
     s = summarize(r, run)
     survives = None
     if r.isam2 is not None and r.isam2.status != "ok":
         survives = bool(np.isfinite(s.after_idle))
+    closes = bool(r.closing.any())  # a graph without a loop has nothing to judge there
     return Targets(bool(s.after_idle <= IDLE_TARGET), bool(s.median <= MEDIAN_TARGET),
                    run.times.p99 <= run.budget_ms, run.times.max <= MAX_TARGET * run.budget_ms,
-                   _monotone(r), survives)
+                   _monotone(r), survives,
+                   bool(s.closure_median <= CLOSURE_MEDIAN_TARGET) if closes else None,
+                   bool(s.closure_max <= CLOSURE_MAX_TARGET) if closes else None,
+                   bool(s.p95 <= P95_TARGET))
 
 
 def _monotone(r: GraphOnline) -> bool | None:
@@ -663,7 +753,7 @@ def _monotone(r: GraphOnline) -> bool | None:
 
 def _h2o_row(r: GraphOnline, run: H2OOnlineRun) -> list[str]:
     if run.status != "ok":
-        return [r.name, run.label] + [_short(run.status)] * 11 + ["—", run.status]
+        return [r.name, run.label] + [_short(run.status)] * 13 + ["—", run.status]
     s, ex = summarize(r, run), run.exact
     exact = "/".join(str(ex.get(k, "—")) for k in ("solves", "merges", "failures"))
     seconds = float(np.sum(run.times.ms)) * 1e-3
@@ -671,6 +761,7 @@ def _h2o_row(r: GraphOnline, run: H2OOnlineRun) -> list[str]:
     return [r.name, run.label, _num(run.times.mean, ".3g"), _num(run.times.p99, ".3g"),
             _num(run.times.max, ".3g"), _overrun_cell(run.times, run.budget_ms),
             _num(rate, ".3g"), _num(s.median, ".4g"), _num(s.p95, ".4g"),
+            _num(s.closure_median, ".4g"), _num(s.closure_max, ".4g"),
             _num(s.end_of_stream, ".4g"), _num(s.after_idle, ".4f"), str(run.idle_steps),
             str(run.deferred_edges), exact, "ok"]
 
@@ -680,10 +771,12 @@ def _isam2_row(r: GraphOnline, budgets_ms: list[float]) -> list[str]:
     assert s is not None
     over = "; ".join(f"{b:g} ms: {_overrun_cell(s.times, b)}" for b in budgets_ms)
     own = r.isam2_r()
+    closure_median, closure_max = r.after_closure(own)
     end = _num(float(ratio(s.chi2_final, r.ref.full)), ".4g") if s.status == "ok" else "—"
     return [r.name, "iSAM2", _num(s.times.mean, ".3g"), _num(s.times.p99, ".3g"),
             _num(s.times.max, ".3g"), over or "—", "—", _num(_percentile(own, 50), ".4g"),
-            _num(_percentile(own, 95), ".4g"), end, "—", "—", "—", "—", _short(s.status)]
+            _num(_percentile(own, 95), ".4g"), _num(closure_median, ".4g"),
+            _num(closure_max, ".4g"), end, "—", "—", "—", "—", _short(s.status)]
 
 
 def _table(head: list[str], rows: list[list[str]]) -> list[str]:
@@ -699,35 +792,46 @@ def _reference_rows(results: list[GraphOnline]) -> list[list[str]]:
                                        else _short(s.status))
         rows.append([
             r.name, "SE(2)" if r.planar else "SE(3)", str(r.nodes), str(r.edges),
-            str(len(ref.nodes)), _num(r.chi2_initial, ".6g"),
+            f"{len(ref.nodes)} ({int(r.closing.sum())})", _num(r.chi2_initial, ".6g"),
             _num(ref.exact[-1] if len(ref.exact) else np.nan, ".6g"), isam2,
             _num(ref.full, ".6g"), f"{int(ref.by_isam2.sum())} / {len(ref.nodes)}",
             f"{int(ref.converged.sum())} / {len(ref.nodes)}", _num(ref.exact_s, ".3g")])
     return rows
 
 
+#: The targets table's columns after the graph: heading and field of :class:`Targets`.
+TARGET_COLUMNS = [
+    (f"r after idle ≤ {IDLE_TARGET:g}", "after_idle"),
+    (f"median r ≤ {MEDIAN_TARGET:g}", "median"),
+    (f"p95 r ≤ {P95_TARGET:g}", "p95"),
+    (f"median r after a closure ≤ {CLOSURE_MEDIAN_TARGET:g}", "closure_median"),
+    (f"max r after a closure ≤ {CLOSURE_MAX_TARGET:g}", "closure_max"),
+    ("p99 ≤ budget", "p99"),
+    (f"max ≤ {MAX_TARGET:g}×budget", "max"),
+    ("no worse at a larger budget", "monotone"),
+    ("finishes where iSAM2 fails", "survives"),
+]
+TARGET_HEAD = [f"graph ({TARGET_BUDGET_MS:g} ms)", *(head for head, _ in TARGET_COLUMNS)]
+
+
 def _targets_rows(results: list[GraphOnline]) -> list[list[str]]:
     rows = []
     for r in results:
         t = targets(r)
-        survives = _yes(t.survives) if t.survives is not None else (
-            "— (iSAM2 ok)" if r.isam2 is not None and r.isam2.status == "ok" else "—")
-        rows.append([r.name, _yes(t.after_idle), _yes(t.median), _yes(t.p99), _yes(t.max),
-                     _yes(t.monotone), survives])
+        row = [r.name, *(_yes(getattr(t, attr)) for _, attr in TARGET_COLUMNS)]
+        if t.survives is None and r.isam2 is not None and r.isam2.status == "ok":
+            row[-1] = "— (iSAM2 ok)"
+        rows.append(row)
     return rows
 
 
-TARGET_HEAD = [f"graph ({TARGET_BUDGET_MS:g} ms)", f"r after idle ≤ {IDLE_TARGET:g}",
-               f"median r ≤ {MEDIAN_TARGET:g}", "p99 ≤ budget", f"max ≤ {MAX_TARGET:g}×budget",
-               "no worse at a larger budget", "finishes where iSAM2 fails"]
-
-
-def format_tables(results: list[GraphOnline], budgets_ms: list[float]) -> str:
+def format_tables(results: list[GraphOnline], budgets_ms: list[float],
+                  busy_count: int = 0) -> str:
     """The reference table, the main table, the targets table, checks and failures."""
     lines = ["Optimum per graph (χ² of the whole graph; the optimum at each sample is "
              "min(iSAM2, exact prefix solve)):", ""]
-    lines += _table(["graph", "kind", "nodes", "edges", "samples", "χ² initial",
-                     f"exact χ² ({EXACT_ITERATIONS} it.)", "iSAM2 χ²", "optimum χ²",
+    lines += _table(["graph", "kind", "nodes", "edges", "samples (at a closure)",
+                     "χ² initial", f"exact χ² ({EXACT_ITERATIONS} it.)", "iSAM2 χ²", "optimum χ²",
                      "samples where iSAM2 is the optimum", "exact prefix solves converged",
                      "exact prefix solves s"], _reference_rows(results))
     rows = []
@@ -738,13 +842,14 @@ def format_tables(results: list[GraphOnline], budgets_ms: list[float]) -> str:
     lines += ["", "Per graph and solver (times per callback in ms; r = χ² / optimum of the "
               "edges so far):", ""]
     lines += _table(["graph", "solver", "mean", "p99", "max", "overruns of the budget",
-                     "updates / s", "median r", "p95 r", "r end of stream",
+                     "updates / s", "median r", "p95 r", "r after a closure: median",
+                     "r after a closure: max", "r end of stream",
                      f"r after {IDLE_S:g} s idle",
                      "idle steps", "deferred edges", "exact solves/merges/failures",
                      "status"], rows)
     lines += ["", f"Targets at {TARGET_BUDGET_MS:g} ms:", ""]
     lines += _table(TARGET_HEAD, _targets_rows(results))
-    lines += ["", _summary(results), *_checks(results), *_failures(results)]
+    lines += ["", _summary(results, busy_count), *_checks(results), *_failures(results)]
     return "\n".join(lines)
 
 
@@ -783,15 +888,25 @@ def _failures(results: list[GraphOnline]) -> list[str]:
     return ["", "Failures, divergences and timeouts:", "", *lines] if lines else []
 
 
-def _summary(results: list[GraphOnline]) -> str:
-    """How many graphs meet each target."""
+def _summary(results: list[GraphOnline], busy_count: int = 0) -> str:
+    """How many graphs meet each target (under ``--busy``, which ones count)."""
     judged = [targets(r) for r in results]
     parts = []
-    for name, attr in zip(TARGET_HEAD[1:], ("after_idle", "median", "p99", "max", "monotone",
-                                             "survives"), strict=True):
+    for name, attr in TARGET_COLUMNS:
         vals = [getattr(t, attr) for t in judged if getattr(t, attr) is not None]
         parts.append(f"{name}: {sum(vals)}/{len(vals)}")
-    return f"Graphs meeting each target at {TARGET_BUDGET_MS:g} ms — " + "; ".join(parts) + "."
+    line = f"Graphs meeting each target at {TARGET_BUDGET_MS:g} ms — " + "; ".join(parts) + "."
+    if busy_count:
+        line += (f" Under load ({_busy_words(busy_count)}) the targets that count are "
+                 f"r after idle ≤ {IDLE_TARGET:g} and p99 ≤ budget.")
+    return line
+
+
+def _busy_words(count: int) -> str:
+    """``--busy`` in words, e.g. "2 CPU-bound processes beside every run"."""
+    if not count:
+        return "no CPU-bound process added beside the runs"
+    return f"{count} CPU-bound process{'es' if count > 1 else ''} beside every run"
 
 
 NOTES = f"""\
@@ -803,7 +918,10 @@ Notes:
   H₂O runs budgeted idle steps, one per two budgets, as `h2o_node`'s idle timer does.
 - Sample points: `h2o_slam.core.modes.sample_points(graph, {SAMPLES})` ({SAMPLES} poses spread over
   the stream and up to {SAMPLES} that close a loop); a sample after pose k covers the first
-  k+1 poses ("poses received") and the edges among them.
+  k+1 poses ("poses received") and the edges among them. A sample is "at a closure" when its
+  pose brings a loop closure (it is the newest end of a relative edge between poses more than
+  one apart: `closing_poses` here, the set `sample_points` picks from); the spread samples
+  count when their pose closes a loop, the others do not.
 - H₂O: `h2o-solve IN --output OUT --mode online --budget-ms B --passes 0 --idle-s {IDLE_S:g}
   --samples {SAMPLES} --period-ms {{period}} --report R --trace T`, default d_max, as a
   subprocess; exact Gauss–Newton solves run beside the budgeted updates (a worker process
@@ -833,13 +951,23 @@ Notes:
   Neither is a certified global optimum. Where the optimum is below {ZERO_CHI2:g} (no loop
   closed yet) r is 1 if H₂O's χ² is also below it, else ∞. Every χ² is
   `h2o_slam.core.graph.edge_chi2` summed over the edges received so far.
-- r: median and p95 (numpy's linear interpolation) over the sample points; "r end of
-  stream" is `chi2_end_of_stream` / the full optimum; "r after idle" is `chi2_after_idle` /
-  the full optimum.
-- Targets (issue 11), at {TARGET_BUDGET_MS:g} ms: r after idle ≤ {IDLE_TARGET:g}; median r ≤
+- r: median and p95 (numpy's linear interpolation) over the sample points; "r after a
+  closure": median and max over the samples at a closure (right after the callback of the
+  pose that brings it; "—" when the graph closes no loop); "r end of stream" is
+  `chi2_end_of_stream` / the full optimum; "r after idle" is `chi2_after_idle` / the full
+  optimum. iSAM2's row gives the same figures of its own r.
+- Targets, at {TARGET_BUDGET_MS:g} ms. Issue 11: r after idle ≤ {IDLE_TARGET:g}; median r ≤
   {MEDIAN_TARGET:g}; p99 ≤ budget; max ≤ {MAX_TARGET:g}× budget; r after idle and median r at
   each larger budget ≤ {NOISE:g}× those at the next smaller one (all budgets); where iSAM2
-  fails, H₂O finishes with a finite r after idle. A failed H₂O run fails every target.
+  fails, H₂O finishes with a finite r after idle. Issue 25 ("near the optimum at every
+  instant"): p95 r ≤ {P95_TARGET:g}; r after a closure ≤ {CLOSURE_MEDIAN_TARGET:g} (median) and
+  ≤ {CLOSURE_MAX_TARGET:g} (max), not judged on a graph without a closing sample. A failed
+  H₂O run fails every target.
+- Load: {{busy}}. With `--busy N`, N CPU-bound Python processes (a loop that stops
+  when this script is gone) run beside all of a graph's H₂O and iSAM2 runs, started before
+  the first and killed after the last (not during the exact prefix solves, which are not
+  timed). Under load the targets that count are r after idle ≤ {IDLE_TARGET:g} and p99 ≤
+  budget (a robot's computer is never idle); the others are shown as measured.
 - The machine has 2 cores shared with other work (and H₂O's exact solves use the second):
   single runs, timings indicative; the tails (p99, max) are the most sensitive to load.
 - Plots: `bench/plots/online_<graph>.png`: r against poses received (log scale), one line
@@ -849,16 +977,17 @@ Notes:
 
 
 def render_section(results: list[GraphOnline], budgets_ms: list[float],
-                   skipped: list[str], period_ms: float = PERIOD_MS) -> str:
+                   skipped: list[str], period_ms: float = PERIOD_MS, busy_count: int = 0) -> str:
     """The ``## Online`` section of RESULTS.md."""
     skip = "".join(f"- skipped {s}\n" for s in skipped)
     skip = f"Graphs that could not be read:\n\n{skip}\n" if skip else ""
     when = dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
+    busy_words = _busy_words(busy_count)
     return (f"{SECTION}\n\nCommand (from the repo root): `{solvers._command()}`\n\n"
             f"Date: {when}. Machine: {solvers._machine()}; 2 cores shared with other work, "
-            "timings indicative.\n\n"
-            f"{format_tables(results, budgets_ms)}\n\n{skip}"
-            f"{NOTES.format(period=f'{period_ms:g}')}")
+            f"timings indicative. Busy: {busy_words}.\n\n"
+            f"{format_tables(results, budgets_ms, busy_count)}\n\n{skip}"
+            f"{NOTES.format(period=f'{period_ms:g}', busy=busy_words)}")
 
 
 # --- entry point -------------------------------------------------------------------------------
@@ -866,14 +995,14 @@ def render_section(results: list[GraphOnline], budgets_ms: list[float],
 
 def run(data: Path | None, names: list[str] | None, budgets_ms: list[float], timeout_s: float,
         out_dir: Path | None, skip_isam2: bool, results: Path | None, plots: Path,
-        period_ms: float = PERIOD_MS) -> int:
+        period_ms: float = PERIOD_MS, busy_count: int = 0) -> int:
     """Benchmark the graphs of ``data`` (all, or ``names``); return an exit code."""
     paths = select_graphs("online.py", data, names)
     if isinstance(paths, int):
         return paths
     rows, skipped = run_graphs("online.py", paths, out_dir, lambda p, folder: bench_graph(
-        p, folder, budgets_ms, timeout_s, skip_isam2, plots, period_ms))
-    publish(render_section(rows, budgets_ms, skipped, period_ms), results, SECTION)
+        p, folder, budgets_ms, timeout_s, skip_isam2, plots, period_ms, busy_count))
+    publish(render_section(rows, budgets_ms, skipped, period_ms, busy_count), results, SECTION)
     return 0
 
 
@@ -894,13 +1023,18 @@ def main(argv: list[str] | None = None) -> int:
                              f"(default {PERIOD_MS:g}; 0: back to back)")
     parser.add_argument("--plots", type=Path, default=DEFAULT_PLOTS,
                         help=f"folder for the PNGs (default {DEFAULT_PLOTS})")
+    parser.add_argument("--busy", type=int, default=0, metavar="N",
+                        help="run N CPU-bound processes beside every H₂O and iSAM2 run "
+                             "(default 0)")
     args = parser.parse_args(argv)
     if any(b <= 0 for b in args.budgets):
         parser.error("--budgets must be positive")
     if not 0.0 <= args.period_ms < math.inf:
         parser.error("--period-ms must be a non-negative number")
+    if args.busy < 0:
+        parser.error("--busy must be a non-negative integer")
     return run(args.data, args.graphs, args.budgets, args.timeout, args.output_dir,
-               args.skip_isam2, results_path(args), args.plots, args.period_ms)
+               args.skip_isam2, results_path(args), args.plots, args.period_ms, args.busy)
 
 
 if __name__ == "__main__":
