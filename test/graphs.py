@@ -90,3 +90,38 @@ def random_graph(
         planar, np.arange(n), est_R, est_t, np.array(kind), np.array(a), np.array(b),
         np.array(mR), np.array(mt), np.array(info),
     )
+
+
+def loop_graph(seed: int, planar: bool, n: int, reverse: bool) -> PoseGraph:
+    """A dead-reckoned chain of ``n`` poses (noisy odometry, its own start) closed by one
+    edge from the last pose to the first (``reverse``) or the first to the last."""
+    rng = np.random.default_rng(seed)
+    dof = geo.PLANAR_DOF if planar else np.arange(6)
+    truth_R, truth_t = [np.eye(3)], [np.zeros(3)]
+    for _ in range(n - 1):
+        yaw = rng.normal(0.0, 0.3)
+        w = np.array([0.0, 0.0, yaw]) if planar else rng.normal(0.0, 0.1, 3) + [0, 0, yaw]
+        step = np.array([1.0, rng.normal(0.0, 0.2), 0.0 if planar else rng.normal(0.0, 0.1)])
+        R, t = geo.compose(truth_R[-1], truth_t[-1], geo.so3_exp(w), step)
+        truth_R.append(R)
+        truth_t.append(t)
+    pairs = [(i, i + 1) for i in range(n - 1)] + [(n - 1, 0) if reverse else (0, n - 1)]
+    kind, a, b, mR, mt, info = [], [], [], [], [], []
+    for i, j in pairs:
+        Rk, tk = geo.between(truth_R[i], truth_t[i], truth_R[j], truth_t[j])
+        w = rng.normal(0.0, 0.02, 3) * ([0, 0, 1] if planar else 1)
+        noise_t = rng.normal(0.0, 0.05, 3) * ([1, 1, 0] if planar else 1)
+        Rk, tk = geo.compose(Rk, tk, geo.so3_exp(w), noise_t)
+        S = np.zeros((6, 6))
+        S[np.ix_(dof, dof)] = np.diag(rng.uniform(50.0, 400.0, len(dof)))
+        kind.append(EdgeKind.RELATIVE)
+        a.append(i)
+        b.append(j)
+        mR.append(Rk)
+        mt.append(tk)
+        info.append(S)
+    R0, t0 = geo.cumulative_compose(np.array(mR[:n - 1]), np.array(mt[:n - 1]))
+    start_R = np.concatenate([np.eye(3)[None], R0])
+    start_t = np.concatenate([np.zeros((1, 3)), t0])
+    return make_graph(planar, np.arange(n), start_R, start_t, np.array(kind), np.array(a),
+                      np.array(b), np.array(mR), np.array(mt), np.array(info))

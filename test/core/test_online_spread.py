@@ -1,0 +1,59 @@
+"""The first correction of a long loop: spread along its chain inside the budget."""
+
+from __future__ import annotations
+
+import pytest
+from graphs import loop_graph
+
+from h2o_slam.core.graph import EdgeKind
+from h2o_slam.core.modes import add_arrival, arrivals, solve_exact
+from h2o_slam.core.online import OnlineConfig, OnlineH2O
+
+
+def chi2_after_closure(planar: bool, spread: bool, budget_s: float | None) -> tuple[float,
+                                                                                     float]:
+    """χ² right after the callback that brings a 300-pose loop's closure, over the optimum,
+    with H₂O's updates alone (no exact solves); and the spreads kept."""
+    g = loop_graph(3, planar, 300, reverse=True)
+    h2o = OnlineH2O(planar, None, OnlineConfig(background="off", spread_loops=spread))
+    try:
+        for node, edges in enumerate(arrivals(g)):
+            add_arrival(h2o, g, node, edges)
+            h2o.step(budget_s)
+        return h2o.solver.chi2(g) / solve_exact(g).chi2_final, h2o.spreads["kept"]
+    finally:
+        h2o.close()
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_the_first_correction_of_a_long_loop_is_near_its_optimum(planar: bool) -> None:
+    # Unbudgeted, so that no machine is too slow for it: the tree path's update then
+    # solves its whole domain, and still leaves the loop bent.
+    spread, kept = chi2_after_closure(planar, True, None)
+    alone, _ = chi2_after_closure(planar, False, None)
+    assert kept == 1
+    assert spread < 1.1
+    assert alone > 100.0 * spread
+
+
+def test_closures_a_merged_solution_left_out_are_spread_again() -> None:
+    """A solution merged after a closure arrived was solved without it: the closure's
+    correction went with the poses the merge replaced, so it is queued again."""
+    g = loop_graph(4, True, 120, reverse=False)
+    h2o = OnlineH2O(True, None, OnlineConfig(background="inline"))
+    try:
+        feed = list(arrivals(g))
+        for node, edges in enumerate(feed[:-1]):
+            add_arrival(h2o, g, node, edges)
+            h2o.step(None)
+        solution = h2o.converger.solve_now(h2o._clock)  # noqa: SLF001 - an older solution
+        assert solution is not None
+        add_arrival(h2o, g, len(feed) - 1, feed[-1])
+        h2o.step(None)
+        closure = h2o.solver.num_edges - 1
+        assert h2o.solver.kind[closure] == EdgeKind.RELATIVE
+        h2o.pending.clear()
+        h2o._after_merge(solution)  # noqa: SLF001 - the merge of the older solution
+        assert closure in h2o._respread  # noqa: SLF001
+    finally:
+        h2o.close()
