@@ -105,23 +105,20 @@ def loop_graph(seed: int, planar: bool, n: int, reverse: bool) -> PoseGraph:
         R, t = geo.compose(truth_R[-1], truth_t[-1], geo.so3_exp(w), step)
         truth_R.append(R)
         truth_t.append(t)
-    pairs = [(i, i + 1) for i in range(n - 1)] + [(n - 1, 0) if reverse else (0, n - 1)]
-    kind, a, b, mR, mt, info = [], [], [], [], [], []
-    for i, j in pairs:
-        Rk, tk = geo.between(truth_R[i], truth_t[i], truth_R[j], truth_t[j])
-        w = rng.normal(0.0, 0.02, 3) * ([0, 0, 1] if planar else 1)
-        noise_t = rng.normal(0.0, 0.05, 3) * ([1, 1, 0] if planar else 1)
-        Rk, tk = geo.compose(Rk, tk, geo.so3_exp(w), noise_t)
-        S = np.zeros((6, 6))
-        S[np.ix_(dof, dof)] = np.diag(rng.uniform(50.0, 400.0, len(dof)))
-        kind.append(EdgeKind.RELATIVE)
-        a.append(i)
-        b.append(j)
-        mR.append(Rk)
-        mt.append(tk)
-        info.append(S)
-    R0, t0 = geo.cumulative_compose(np.array(mR[:n - 1]), np.array(mt[:n - 1]))
+    pairs = np.array([(i, i + 1) for i in range(n - 1)]
+                     + [(n - 1, 0) if reverse else (0, n - 1)])
+    a, b = pairs[:, 0], pairs[:, 1]
+    m = len(pairs)
+    R_ab, t_ab = geo.between(np.array(truth_R)[a], np.array(truth_t)[a],
+                             np.array(truth_R)[b], np.array(truth_t)[b])
+    w = rng.normal(0.0, 0.02, (m, 3)) * ([0, 0, 1] if planar else 1)
+    noise_t = rng.normal(0.0, 0.05, (m, 3)) * ([1, 1, 0] if planar else 1)
+    mR, mt = geo.compose(R_ab, t_ab, geo.so3_exp(w), noise_t)
+    info = np.zeros((m, 6, 6))
+    info[:, dof, dof] = rng.uniform(50.0, 400.0, (m, len(dof)))
+    R0, t0 = geo.cumulative_compose(mR[:n - 1], mt[:n - 1])
     start_R = np.concatenate([np.eye(3)[None], R0])
     start_t = np.concatenate([np.zeros((1, 3)), t0])
-    return make_graph(planar, np.arange(n), start_R, start_t, np.array(kind), np.array(a),
-                      np.array(b), np.array(mR), np.array(mt), np.array(info))
+    kind = np.full(m, EdgeKind.RELATIVE)
+    return make_graph(planar, np.arange(n), start_R, start_t, kind, a,
+                      b, mR, mt, info)

@@ -26,7 +26,7 @@ def test_a_lone_loop_spread_reaches_its_least_squares_optimum(
     start = chi2(g)
     R, t = spread_loop(g.R, g.t, int(g.a[-1]), int(g.b[-1]), g.meas_R[-1], g.meas_t[-1],
                        g.info[-1], g.info[:-1], dof, steps=8)
-    assert start > 100.0 * optimum  # dead reckoning leaves the loop open
+    assert start > 5.0 * optimum  # dead reckoning leaves the loop open
     assert chi2(g, R, t) <= 1.001 * optimum
     # Node 0 stays where it was: the loop is spread towards the newer end.
     np.testing.assert_allclose(R[0], g.R[0])
