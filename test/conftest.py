@@ -23,3 +23,14 @@ def context() -> Iterator[object]:
     rclpy.init(context=ctx)
     yield ctx
     rclpy.shutdown(context=ctx)
+
+
+@pytest.fixture()
+def harness() -> Iterator[object]:
+    """An in-process executor with its own context (``node_harness.Harness``), closed after
+    the test."""
+    from node_harness import Harness  # rclpy on use: most tests never start a node
+
+    h = Harness()
+    yield h
+    h.close()

@@ -3,7 +3,6 @@ for in /diagnostics (received = accepted + rejected + dropped), bursts included.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -18,13 +17,6 @@ from hybrid_vo.vo_node import HybridVoNode
 T0 = 1_700_000_000 * 10**9
 KEYS = ("odom", "left_info", "right_info", "left_image", "right_image")
 COUNTS = ("received", "accepted", "rejected", "dropped")
-
-
-@pytest.fixture()
-def harness() -> Iterator[Harness]:
-    h = Harness()
-    yield h
-    h.close()
 
 
 def _counts(node: HybridVoNode) -> dict[str, dict[str, int]]:

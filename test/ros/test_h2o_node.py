@@ -7,7 +7,6 @@ import gc
 import math
 import time
 import weakref
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -47,13 +46,6 @@ def loop_drive() -> world.Drive:
     the slip drive's hallucinated turns the gate rightly refuses closures: they are 0.7 rad
     off what the odometry noise model allows.)"""
     return world.make_drive(world.scenario("loop", seed=2))
-
-
-@pytest.fixture()
-def harness() -> Iterator[Harness]:
-    h = Harness()
-    yield h
-    h.close()
 
 
 def stream(drive: world.Drive, gps: bool, loops: bool) -> list[StreamMessage]:

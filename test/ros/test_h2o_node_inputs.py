@@ -3,7 +3,6 @@ accounted for in /diagnostics (received = accepted + rejected + dropped), bursts
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -18,13 +17,6 @@ from h2o_slam.ros.h2o_node import H2ONode
 
 T0 = 1_700_000_000 * 10**9
 COUNTS = ("received", "accepted", "rejected", "dropped")
-
-
-@pytest.fixture()
-def harness() -> Iterator[Harness]:
-    h = Harness()
-    yield h
-    h.close()
 
 
 def _odometry(stamp_ns: int, x: float) -> Odometry:
