@@ -46,14 +46,15 @@ def closure_error(R: Array, t: Array, a: int, b: int, meas_R: Array, meas_t: Arr
 
 
 def spread_step(R: Array, t: Array, a: int, b: int, meas_R: Array, meas_t: Array,
-                info: Array, chain_info: Array, dof: np.ndarray, moved: Array) -> Array:
+                cov_closure: Array, cov: Array, dof: np.ndarray, moved: Array) -> Array:
     """One Gauss–Newton step of the loop alone (module docstring): the increments' new
     perturbation ``δ``, ``(hi - lo, 6)``, from the one that placed the poses ``(R, t)``.
 
     ``R, t``: every node's world pose (the chain's increments at ``moved``);
-    ``chain_info[i]``: information of the increment into node ``min(a, b) + 1 + i``. The
-    perturbation is weighed from where the spread began, so repeated steps converge to the
-    loop's optimum instead of pulling ever closer to the closure."""
+    ``cov_closure``, ``cov[i]``: covariances (over ``dof``) of the closure and of the
+    increment into node ``min(a, b) + 1 + i`` (:func:`_covariances`). The perturbation is
+    weighed from where the spread began, so repeated steps converge to the loop's optimum
+    instead of pulling ever closer to the closure."""
     lo, hi = min(a, b), max(a, b)
     e = closure_error(R, t, a, b, meas_R, meas_t)[dof]
     # Ad(T_hi⁻¹ T_i) for the increments' end nodes i = lo+1 .. hi.
@@ -63,9 +64,8 @@ def spread_step(R: Array, t: Array, a: int, b: int, meas_R: Array, meas_t: Array
         R_p, t_p = geo.between(R[lo], t[lo], R[hi], t[hi])
         A = -adjoint(R_p, t_p) @ A
     M = A[:, dof[:, None], dof[None, :]]
-    cov = np.linalg.inv(chain_info[:, dof[:, None], dof[None, :]])
     MC = M @ cov
-    S = np.linalg.inv(info[np.ix_(dof, dof)]) + np.einsum("kij,klj->il", MC, M)
+    S = cov_closure + np.einsum("kij,klj->il", MC, M)
     lam = np.linalg.solve(S, e - np.einsum("kij,kj->i", M, moved[:, dof]))
     out = np.zeros_like(moved)
     out[:, dof] = -np.einsum("kji,j->ki", MC, lam)
@@ -81,10 +81,24 @@ def perturbed(R: Array, t: Array, lo: int, hi: int, D_R: Array, D_t: Array, delt
                                       D_t + np.einsum("kij,kj->ki", D_R, delta[:, :3]))
     R_new, t_new = R.copy(), t.copy()
     R_new[lo + 1: hi + 1], t_new[lo + 1: hi + 1] = geo.compose(R[lo], t[lo], P_R, P_t)
+    _follow_end(R, t, R_new, t_new, hi)
+    return R_new, t_new
+
+
+def _follow_end(R: Array, t: Array, R_new: Array, t_new: Array, hi: int) -> None:
+    """Move the nodes after ``hi`` in ``(R_new, t_new)`` rigidly with ``hi``: each keeps its
+    pose relative to ``hi`` in ``(R, t)``."""
     if hi + 1 < len(R):
         rel_R, rel_t = geo.between(R[hi], t[hi], R[hi + 1:], t[hi + 1:])
         R_new[hi + 1:], t_new[hi + 1:] = geo.compose(R_new[hi], t_new[hi], rel_R, rel_t)
-    return R_new, t_new
+
+
+def _covariances(info: Array, chain_info: Array, dof: np.ndarray) -> tuple[Array, Array]:
+    """The closure's and the chain increments' covariances over ``dof``, inverted once per
+    spread (every step reuses them)."""
+    cov_closure = np.asarray(np.linalg.inv(info[np.ix_(dof, dof)]), dtype=float)
+    cov = np.asarray(np.linalg.inv(chain_info[:, dof[:, None], dof[None, :]]), dtype=float)
+    return cov_closure, cov
 
 
 def spread_loop(R: Array, t: Array, a: int, b: int, meas_R: Array, meas_t: Array,
@@ -96,10 +110,11 @@ def spread_loop(R: Array, t: Array, a: int, b: int, meas_R: Array, meas_t: Array
     if len(dof) == 3:
         return _spread_planar(R, t, a, b, meas_R, meas_t, info, chain_info, dof, steps)
     D_R, D_t = geo.between(R[lo: hi], t[lo: hi], R[lo + 1: hi + 1], t[lo + 1: hi + 1])
+    cov_closure, cov = _covariances(info, chain_info, dof)
     moved = np.zeros((hi - lo, 6))
     R_now, t_now = R, t
     for _ in range(steps):
-        moved = spread_step(R_now, t_now, a, b, meas_R, meas_t, info, chain_info, dof, moved)
+        moved = spread_step(R_now, t_now, a, b, meas_R, meas_t, cov_closure, cov, dof, moved)
         R_now, t_now = perturbed(R, t, lo, hi, D_R, D_t, moved)
     return R_now, t_now
 
@@ -116,8 +131,7 @@ def _spread_planar(R: Array, t: Array, a: int, b: int, meas_R: Array, meas_t: Ar
     d = geo.planar_between(np.column_stack([xy[:-1], yaw[:-1]]),
                            np.column_stack([xy[1:], yaw[1:]]))
     meas = np.array([meas_t[0], meas_t[1], np.arctan2(meas_R[1, 0], meas_R[0, 0])])
-    cov = np.asarray(np.linalg.inv(chain_info[:, dof[:, None], dof[None, :]]), dtype=float)
-    cov_closure = np.asarray(np.linalg.inv(info[np.ix_(dof, dof)]), dtype=float)
+    cov_closure, cov = _covariances(info, chain_info, dof)
     moved = np.zeros((hi - lo, 3))
     for _ in range(steps):
         pose = _planar_chain(xy[0], yaw[0], d, moved)
@@ -126,9 +140,7 @@ def _spread_planar(R: Array, t: Array, a: int, b: int, meas_R: Array, meas_t: Ar
     R_new, t_new = R.copy(), t.copy()
     R_new[lo + 1: hi + 1] = geo.yaw_to_matrix(pose[1:, 2])
     t_new[lo + 1: hi + 1, :2] = pose[1:, :2]
-    if hi + 1 < len(R):
-        rel_R, rel_t = geo.between(R[hi], t[hi], R[hi + 1:], t[hi + 1:])
-        R_new[hi + 1:], t_new[hi + 1:] = geo.compose(R_new[hi], t_new[hi], rel_R, rel_t)
+    _follow_end(R, t, R_new, t_new, hi)
     return R_new, t_new
 
 
@@ -178,12 +190,12 @@ def _planar_step(pose: Array, reverse: bool, meas: Array, cov: Array, cov_closur
 def planar_edge_chi2(graph: PoseGraph, edges: np.ndarray, R: Array, t: Array) -> Array:
     """χ² of a planar graph's relative ``edges`` at world poses ``(R, t)``, in ``(x, y, yaw)``:
     :func:`~h2o_slam.core.graph.edge_chi2` restricted to planar relative edges."""
+    def planar(Rs: Array, ts: Array) -> Array:
+        return np.column_stack([ts[:, :2], np.arctan2(Rs[:, 1, 0], Rs[:, 0, 0])])
+
     a, b = graph.a[edges], graph.b[edges]
-    yaw = np.arctan2(R[:, 1, 0], R[:, 0, 0])
-    pose = np.column_stack([t[:, :2], yaw])
-    meas = np.column_stack([graph.meas_t[edges, :2],
-                            np.arctan2(graph.meas_R[edges, 1, 0], graph.meas_R[edges, 0, 0])])
-    e = geo.planar_between(meas, geo.planar_between(pose[a], pose[b]))
+    meas = planar(graph.meas_R[edges], graph.meas_t[edges])
+    e = geo.planar_between(meas, geo.planar_between(planar(R[a], t[a]), planar(R[b], t[b])))
     dof = geo.PLANAR_DOF
     S = graph.info[edges][:, dof[:, None], dof[None, :]]
     return np.einsum("mi,mij,mj->m", e, S, e)
