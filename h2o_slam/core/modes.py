@@ -33,9 +33,9 @@ from h2o_slam.core.robust import (
     RobustConfig,
     chordal_restart,
     converge_robust,
+    edge_thresholds,
     lago_restart,
     odometry_edges,
-    thresholds,
     tls_cost,
 )
 from h2o_slam.core.solver import H2OSolver, SolverConfig
@@ -303,8 +303,7 @@ def robust_cost(graph: PoseGraph, R: Array, t: Array, robust: RobustConfig) -> f
     """The TLS cost the robust solve minimizes, of ``graph`` at ``(R, t)``: odometry's χ²
     plus each other edge's χ², at most its threshold."""
     trusted = odometry_edges(graph.kind, graph.a, graph.b)
-    c2 = thresholds(graph.kind, graph.planar, robust.inlier_probability)
-    return tls_cost(edge_chi2(graph, R, t), ~trusted, c2)
+    return tls_cost(edge_chi2(graph, R, t), ~trusted, edge_thresholds(graph, trusted, robust))
 
 
 def _has_global(graph: PoseGraph) -> bool:

@@ -48,7 +48,13 @@ from h2o_slam.core.modes import (
     solve_online,
 )
 from h2o_slam.core.online import OnlineConfig
-from h2o_slam.core.robust import EdgeState, RobustConfig, edge_states, odometry_edges
+from h2o_slam.core.robust import (
+    EdgeState,
+    RobustConfig,
+    closure_noise_scale,
+    edge_states,
+    odometry_edges,
+)
 from h2o_slam.core.solver import SolverConfig
 from h2o_slam.core.warmup import warm_up
 from h2o_slam.io.g2o import read_g2o, write_g2o
@@ -272,8 +278,12 @@ def _robust_summary(graph: PoseGraph, result: SolveResult) -> dict[str, Any] | N
     trusted = odometry_edges(graph.kind, graph.a, graph.b)
     states = edge_states(result.weights, trusted)
     kept = result.weights > 0.5
+    config = RobustConfig()
+    noise = closure_noise_scale(graph, trusted)
     return {
-        "method": "gnc-tls", "inlier_probability": RobustConfig().inlier_probability,
+        "method": "gnc-tls", "inlier_probability": config.inlier_probability,
+        "closure_noise_scale": noise,
+        "closure_threshold_scale": min(1.0, config.noise_margin * noise),
         "weighed": int(np.count_nonzero(~trusted)),
         "accepted": int(np.count_nonzero(states == EdgeState.ACCEPTED)),
         "dropped": int(np.count_nonzero(states == EdgeState.DROPPED)),
@@ -427,6 +437,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{PROG}: warning: exact mode stopped at its cap of {report.max_iterations} "
               f"iterations, chi2 still falling ({rate:.2g} of it in the last); raise "
               "--passes or --tolerance", file=sys.stderr)
+    if report.robust is not None and report.robust["closure_threshold_scale"] < 1.0:
+        agree = 1.0 / report.robust["closure_noise_scale"]
+        print(f"{PROG}: robust: the loop closures agree {agree:.3g} times better than "
+              "their information says (variance); their outlier "
+              f"thresholds are scaled by {report.robust['closure_threshold_scale']:.3g}",
+              file=sys.stderr)
     if report.robust is not None and report.robust["dropped"]:
         print(f"{PROG}: robust: dropped {report.robust['dropped']} of "
               f"{report.robust['weighed']} loop closures and fixes as outliers (listed in the "
