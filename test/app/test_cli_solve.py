@@ -338,3 +338,26 @@ def test_init_chordal_starts_a_3d_graph_near_the_optimum(tmp_path, capsys):
     write_g2o(planar, manhattan(30, seed=1).graph)
     assert main([str(planar), "-o", str(out), "--init", "chordal"]) == 1
     assert "chordal initialization is for 3-D graphs" in capsys.readouterr().err
+
+
+def test_a_file_whose_closures_agree_far_better_than_stated_says_so(tmp_path, capsys):
+    """Information the identity on centimetre edges: the console and the report say how
+    much tighter the closures agree than stated and how the thresholds were scaled."""
+    from h2o_slam.core.graph import make_graph
+
+    walk = manhattan(400, seed=0, sigma_xy_m=0.01, sigma_yaw_rad=0.002).graph
+    loose = make_graph(walk.planar, walk.ids, walk.R, walk.t, walk.kind, walk.a, walk.b,
+                       walk.meas_R, walk.meas_t,
+                       np.broadcast_to(np.eye(6), walk.info.shape).copy())
+    path, report = tmp_path / "loose.g2o", tmp_path / "r.json"
+    write_g2o(path, loose)
+    code, err, _ = run([str(path), "-o", str(tmp_path / "o.g2o"), "--report", str(report),
+                        "-q"], capsys)
+    data = json.loads(report.read_text())["robust"]
+    assert code == 0 and data["dropped"] == 0
+    assert data["closure_noise_scale"] < 1e-3
+    assert data["closure_threshold_scale"] == pytest.approx(100 * data["closure_noise_scale"])
+    assert err == [f"h2o-solve: robust: the loop closures agree "
+                   f"{1 / data['closure_noise_scale']:.3g} times better than their information "
+                   "says (variance); their outlier thresholds are scaled by "
+                   f"{data['closure_threshold_scale']:.3g}"]

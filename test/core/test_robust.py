@@ -11,14 +11,16 @@ from hypothesis import strategies as st
 from h2o_slam.core.edges import EdgeTable
 from h2o_slam.core.exact import converge_exact
 from h2o_slam.core.geometry import PLANAR_DOF
-from h2o_slam.core.graph import chi2
+from h2o_slam.core.graph import EdgeKind, PoseGraph, chi2, make_graph
 from h2o_slam.core.modes import build_solver, solve_exact
 from h2o_slam.core.robust import (
     EdgeState,
     RobustConfig,
+    closure_noise_scale,
     converge_robust,
     deletion_chi2,
     edge_states,
+    edge_thresholds,
     group_chi2,
     initial_mu,
     innovation_chi2,
@@ -247,3 +249,75 @@ def test_a_3d_map_caught_in_a_local_minimum_restarts_from_the_chordal_start():
     assert not np.any(result.weights[planted.outlier] > 0.5)
     assert np.all(result.weights[~planted.outlier] == 1.0)
     np.testing.assert_allclose(result.t, optimum.t, atol=1e-4)
+
+
+def _with_information(graph: PoseGraph, info: np.ndarray) -> PoseGraph:
+    return make_graph(graph.planar, graph.ids, graph.R, graph.t, graph.kind, graph.a, graph.b,
+                      graph.meas_R, graph.meas_t, info)
+
+
+def _tight_walk(seed: int = 0, gps_every: int = 0) -> PoseGraph:
+    """A walk whose measurements are 100 times more precise (σ) than ``_loose``'s."""
+    return manhattan(400, seed=seed, sigma_xy_m=0.01, sigma_yaw_rad=0.002,
+                     gps_every=gps_every).graph
+
+
+def _loose(graph: PoseGraph) -> PoseGraph:
+    """The walk with every edge's information the identity (σ 1 m and 1 rad), as
+    parking-garage states it while its edges fit to centimetres."""
+    return _with_information(graph, np.broadcast_to(np.eye(6), graph.info.shape).copy())
+
+
+@pytest.mark.parametrize("factor", [1e-4, 0.5, 30.0])
+def test_the_closure_noise_scale_follows_the_closures_stated_information(factor):
+    graph = _tight_walk()
+    trusted = odometry_edges(graph.kind, graph.a, graph.b)
+    info = graph.info.copy()
+    info[~trusted] *= factor
+    scaled = closure_noise_scale(_with_information(graph, info), trusted)
+    assert scaled == pytest.approx(factor * closure_noise_scale(graph, trusted), rel=1e-9)
+
+
+def test_the_closure_noise_scale_tells_stated_noise_from_loose_noise():
+    """Information that matches the noise gives a scale of order 1 (above it: the dead
+    reckoning between a pair's ends adds its own noise); the identity on centimetre
+    measurements, of order 1e-4."""
+    graph = _tight_walk()
+    trusted = odometry_edges(graph.kind, graph.a, graph.b)
+    assert 0.5 < closure_noise_scale(graph, trusted) < 10.0
+    assert closure_noise_scale(_loose(graph), trusted) < 1e-3
+
+
+def test_only_loop_closure_thresholds_tighten_and_never_loosen():
+    graph = _loose(_tight_walk(gps_every=10))
+    trusted = odometry_edges(graph.kind, graph.a, graph.b)
+    config = RobustConfig()
+    plain = thresholds(graph.kind, graph.planar, config.inlier_probability)
+    c2 = edge_thresholds(graph, trusted, config)
+    closures = graph.kind == EdgeKind.RELATIVE
+    scale = config.noise_margin * closure_noise_scale(graph, trusted)
+    np.testing.assert_allclose(c2[closures], scale * plain[closures])
+    np.testing.assert_array_equal(c2[~closures], plain[~closures])
+    assert np.any(~closures)
+    matched = _tight_walk()
+    np.testing.assert_array_equal(
+        edge_thresholds(matched, odometry_edges(matched.kind, matched.a, matched.b), config),
+        thresholds(matched.kind, matched.planar, config.inlier_probability))
+
+
+@pytest.mark.parametrize("kind", ["random", "local"])
+def test_loose_information_does_not_let_false_closures_bend_the_map(kind):
+    """With σ 1 m stated on centimetre edges, bending the map onto a false closure costs
+    less than the unscaled ``c̄²`` (the control: 9-10 of 10 accepted); with the thresholds
+    scaled by the closures' noise every false closure is out and every true one in."""
+    graph = _loose(_tight_walk())
+    optimum = solve_exact(graph)
+    planted = plant_outliers(graph, kind, 10, seed=0)
+    unscaled = solve_exact(planted.graph, robust=RobustConfig(noise_margin=1e12))
+    assert unscaled.weights is not None
+    assert np.count_nonzero(unscaled.weights[planted.outlier] > 0.5) >= 5
+    result = solve_exact(planted.graph, robust=RobustConfig())
+    assert result.weights is not None
+    assert not np.any(result.weights[planted.outlier] > 0.5)
+    assert np.all(result.weights[~planted.outlier] == 1.0)
+    np.testing.assert_allclose(result.t, optimum.t, atol=1e-6)
