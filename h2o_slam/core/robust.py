@@ -282,6 +282,33 @@ def converge_robust(
     for planar graphs), tried when a warm-started re-admission fails.
     """
     cfg = config or RobustConfig()
+    start = (solver.tree.R.copy(), solver.tree.t.copy())
+    outcome = _decide(solver, iterations, trusted, cfg, weights, restart)
+    if not outcome.converged:
+        _polish(solver, outcome, start, iterations)
+    return outcome
+
+
+def _polish(solver: H2OSolver, outcome: RobustOutcome, start: tuple[Array, Array],
+            iterations: int) -> None:
+    """The final decisions solved again from the solve's own start, kept if χ² ends lower.
+    A solve that ends unconverged ends on a map bent by decisions it later reversed, where
+    Gauss–Newton crawls: parking-garage with 100 false closures, every decision right,
+    stopped after 619 iterations at 1.086 times the optimum, which the same decisions reach
+    in 4 iterations from the odometry's tree."""
+    bent = (solver.tree.R.copy(), solver.tree.t.copy())
+    solver.tree.R[:], solver.tree.t[:] = start
+    history, converged = converge_exact(solver, iterations)
+    if history[-1] < outcome.history[-1]:
+        outcome.history.extend(history[1:])
+        outcome.converged = converged
+    else:
+        solver.tree.R[:], solver.tree.t[:] = bent
+
+
+def _decide(solver: H2OSolver, iterations: int, trusted: np.ndarray, cfg: RobustConfig,
+            weights: Array | None, restart: Restart | None) -> RobustOutcome:
+    """The decisions of :func:`converge_robust`, the map at them in ``solver``."""
     c2 = edge_thresholds(solver.graph(copy=False), trusted, cfg)
     if weights is None:
         return _graduate(solver, iterations, ~trusted, c2, cfg, restart)

@@ -16,6 +16,8 @@ from h2o_slam.core.modes import build_solver, solve_exact
 from h2o_slam.core.robust import (
     EdgeState,
     RobustConfig,
+    RobustOutcome,
+    _polish,
     closure_noise_scale,
     converge_robust,
     deletion_chi2,
@@ -321,3 +323,36 @@ def test_loose_information_does_not_let_false_closures_bend_the_map(kind):
     assert not np.any(result.weights[planted.outlier] > 0.5)
     assert np.all(result.weights[~planted.outlier] == 1.0)
     np.testing.assert_allclose(result.t, optimum.t, atol=1e-6)
+
+
+def _bent(solver, seed: int = 0) -> float:
+    """Moves the solver's poses metres off; returns its χ² there."""
+    R, t = solver.world_poses()
+    solver.tree.set_world_poses(R, t + np.random.default_rng(seed).normal(0.0, 3.0, t.shape))
+    return float(converge_exact(solver, 0)[0][0])
+
+
+def test_an_unconverged_robust_solve_is_solved_again_from_its_start():
+    graph = manhattan(200, seed=1).graph
+    optimum = solve_exact(graph)
+    solver, _ = build_solver(graph, init="tree", regularizer=False)
+    start = (solver.tree.R.copy(), solver.tree.t.copy())
+    outcome = RobustOutcome(np.ones(graph.num_edges), [_bent(solver)], 0, False)
+    _polish(solver, outcome, start, 100)
+    assert outcome.converged and len(outcome.history) > 1
+    np.testing.assert_allclose(solver.world_poses()[1], optimum.t, atol=1e-6)
+
+
+def test_a_polish_that_ends_higher_leaves_the_map_as_it_was():
+    graph = manhattan(200, seed=1).graph
+    solver, _ = build_solver(graph, init="tree", regularizer=False)
+    history, _ = converge_exact(solver, 100)
+    there = solver.world_poses()[1].copy()
+    worse = solver.tree.R.copy(), solver.tree.t.copy()
+    _bent(solver)
+    start = (solver.tree.R.copy(), solver.tree.t.copy())
+    solver.tree.R[:], solver.tree.t[:] = worse
+    outcome = RobustOutcome(np.ones(graph.num_edges), history[-1:], 0, False)
+    _polish(solver, outcome, start, 1)  # one iteration from metres off: higher
+    assert not outcome.converged and outcome.history == history[-1:]
+    np.testing.assert_array_equal(solver.world_poses()[1], there)
