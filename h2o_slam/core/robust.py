@@ -215,6 +215,9 @@ def closure_noise_scale(graph: PoseGraph, trusted: np.ndarray) -> float:
                              graph.meas_t[other])[:, graph.dof]
     info = graph.info[np.ix_(other, graph.dof, graph.dof)]
     chi2 = 0.5 * np.einsum("ei,eij,ej->e", err, info, err)
+    chi2 = chi2[np.isfinite(chi2)]  # extreme values that overflow say nothing of the noise
+    if len(chi2) < MIN_PAIRS:
+        return 1.0
     return float(np.median(chi2) / chdtri(len(graph.dof), 0.5))
 
 

@@ -356,3 +356,19 @@ def test_a_polish_that_ends_higher_leaves_the_map_as_it_was():
     _polish(solver, outcome, start, 1)  # one iteration from metres off: higher
     assert not outcome.converged and outcome.history == history[-1:]
     np.testing.assert_array_equal(solver.world_poses()[1], there)
+
+
+def test_the_closure_noise_scale_ignores_closures_whose_error_overflows():
+    """Closures at 1e200 m with correlated x-y information: their χ² is inf - inf (NaN),
+    which would make the median NaN."""
+    graph = _tight_walk()
+    trusted = odometry_edges(graph.kind, graph.a, graph.b)
+    info = graph.info.copy()
+    info[:, 0, 1] = info[:, 1, 0] = 0.5 * np.sqrt(info[:, 0, 0] * info[:, 1, 1])
+    meas_t = graph.meas_t.copy()
+    meas_t[np.flatnonzero(~trusted)[::7]] = [1e200, -1e200, 0.0]
+    extreme = make_graph(graph.planar, graph.ids, graph.R, graph.t, graph.kind, graph.a,
+                         graph.b, graph.meas_R, meas_t, info)
+    with np.errstate(over="ignore", invalid="ignore"):
+        scale = closure_noise_scale(extreme, trusted)
+    assert np.isfinite(scale) and 0.5 < scale < 10.0
