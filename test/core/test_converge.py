@@ -184,6 +184,37 @@ def test_the_worker_process_solves_what_inline_solves(cube):
     assert not worker.alive
 
 
+def _nice_of_threads(pid: int) -> list[int]:
+    """The nice value of every thread of ``pid`` (field 19 of /proc/<pid>/task/<tid>/stat)."""
+    values = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        stat = (task / "stat").read_text()
+        values.append(int(stat.rsplit(")", 1)[1].split()[16]))
+    return values
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux's /proc")
+def test_every_thread_of_the_worker_is_niced_and_its_blas_has_one(cube):
+    """Linux's nice is per thread: the BLAS threads numpy starts must not run at the
+    callbacks' priority. The worker is niced before any import and runs BLAS on one thread."""
+    h2o = OnlineH2O(False, online=OnlineConfig(background="process", freeze_gc=False))
+    try:
+        _feed(h2o, cube, cube.num_nodes, 2e-3)
+        deadline = time.monotonic() + 60.0
+        while h2o.converger.outside() and time.monotonic() < deadline:
+            h2o.step(2e-3)
+            time.sleep(2e-3)
+        assert h2o.converger.state.converged_edges == cube.num_edges  # numpy is loaded
+        worker = h2o.converger._worker
+        assert worker is not None
+        pid = worker._process.pid
+        assert set(_nice_of_threads(pid)) == {19}
+        environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+        assert b"OPENBLAS_NUM_THREADS=1" in environ and b"OMP_NUM_THREADS=1" in environ
+    finally:
+        h2o.close()
+
+
 def test_edges_that_never_fit_the_budget_are_solved_by_the_worker(city):
     """A budget no loop closure's update fits: the closures wait, and the solutions merged
     in idle steps take them in."""
