@@ -215,6 +215,53 @@ def test_every_thread_of_the_worker_is_niced_and_its_blas_has_one(cube):
         h2o.close()
 
 
+def _starved(h2o: OnlineH2O) -> int:
+    """Stops the worker process as a machine busy with other work starves it; its pid."""
+    worker = h2o.converger._worker
+    assert worker is not None
+    os.kill(worker._process.pid, signal.SIGSTOP)
+    return worker._process.pid
+
+
+def test_idle_steps_iterate_the_live_map_while_the_worker_starves(city):
+    """The worker never answers (stopped): idle steps alone bring the map to the optimum,
+    one damped Gauss–Newton iteration of the live map each."""
+    optimum = solve_exact(city, iterations=50).chi2_final
+    h2o = OnlineH2O(True, online=OnlineConfig(background="process", freeze_gc=False))
+    pid = _starved(h2o)
+    try:
+        _feed(h2o, city, city.num_nodes, 1e-3)
+        assert h2o.converger.busy  # a job went out and never came back
+        before = h2o.solver.chi2(city)
+        for _ in range(100):
+            h2o.step(0.05)
+        assert h2o.converger.busy and h2o.converger.state.merges == 0
+        assert before > 1.01 * optimum
+        assert h2o.solver.chi2(city) == pytest.approx(optimum, rel=1e-6)
+        taken = h2o.converger.live_iterations
+        assert 0 < taken < 100  # settled: later idle steps do not iterate again
+        h2o.step(0.05)
+        assert h2o.converger.live_iterations == taken
+    finally:
+        os.kill(pid, signal.SIGCONT)
+        h2o.close()
+
+
+def test_a_live_iteration_runs_only_when_it_is_predicted_to_fit(city):
+    h2o = OnlineH2O(True, online=OnlineConfig(background="process", freeze_gc=False))
+    pid = _starved(h2o)
+    try:
+        _feed(h2o, city, city.num_nodes, 1e-3)
+        assert h2o.converger.busy
+        _fake_clock(h2o, 1e-3)  # each clock reading a millisecond: nothing fits
+        for _ in range(20):
+            h2o.step(5e-3)
+        assert h2o.converger.live_iterations == 0
+    finally:
+        os.kill(pid, signal.SIGCONT)
+        h2o.close()
+
+
 def test_edges_that_never_fit_the_budget_are_solved_by_the_worker(city):
     """A budget no loop closure's update fits: the closures wait, and the solutions merged
     in idle steps take them in."""
