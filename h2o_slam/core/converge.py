@@ -26,8 +26,9 @@ Where the solve runs (:class:`Converger`):
   those in it, and whenever :meth:`OnlineH2O.converge` asks) so that replaying a bag costs
   a few exact solves in all and stays deterministic.
 
-While the worker solves, idle steps take damped Gauss–Newton iterations of the live map
-themselves, one at a time, when one is predicted to fit (:meth:`Converger.work`): a robot's
+While the worker's job is out for much longer than its jobs take, idle steps take damped
+Gauss–Newton iterations of the live map themselves, one at a time, when one is predicted to
+fit (:meth:`Converger.work`): a robot's
 CPU is busy with perception, and a niced worker can starve for seconds (intel at 5 ms beside
 two CPU-bound processes: 181 idle steps left χ² at 5.5 times the optimum), while an
 iteration of a graph of a thousand poses costs a few milliseconds.
@@ -59,6 +60,11 @@ from h2o_slam.core.timing import CostModel
 from h2o_slam.core.tree import PoseTree
 
 BACKGROUNDS = ("process", "inline", "off")
+
+#: A worker's job out for longer than this many times the last one took (and at least
+#: STARVED_MIN_S) is starved: idle steps iterate the live map themselves.
+STARVED_FACTOR = 4.0
+STARVED_MIN_S = 0.1
 
 
 @dataclass(frozen=True)
@@ -487,6 +493,8 @@ class Converger:
         self._live: ExactSystem | None = None
         self._live_damping = 0.0
         self._live_settled: tuple[int, int, int] | None = None  # (edges, generation, merges)
+        self._submitted_at = 0.0
+        self._job_s = 0.0  # how long the last job took, submitted to collected
         #: Live iterations taken (idle steps while the worker solved).
         self.live_iterations = 0
 
@@ -514,7 +522,7 @@ class Converger:
         """
         if not self.enabled:
             return None
-        self._collect()
+        self._collect(clock)
         self._stream_edges()
         if self._merging is None and not self.busy and self._wanted(unlimited, idle):
             if unlimited or self._inline_fits(deadline - clock(), safety, idle):
@@ -524,11 +532,18 @@ class Converger:
                 self._solve_inline(clock, self.iterations if unlimited else self.job_iterations)
             elif self._worker is not None:
                 self._dispatch(deadline, clock, safety)
-        elif idle and not unlimited and self._merging is None and self.busy:
+        elif idle and not unlimited and self._merging is None and self._starved(clock):
             self._iterate_live(deadline, clock, safety)
         if self._merging is None:
             return None
         return self._merge(math.inf if unlimited else deadline, clock, safety)
+
+    def _starved(self, clock: Any) -> bool:
+        """The worker's job is out for much longer than jobs take: on an idle machine the
+        worker's answers keep the map converging and live iterations would only repeat its
+        work in the callbacks."""
+        return (self._worker is not None and self._worker.busy and clock() - self._submitted_at
+                > max(STARVED_FACTOR * self._job_s, STARVED_MIN_S))
 
     def _iterate_live(self, deadline: float, clock: Any, safety: float) -> None:
         """One damped Gauss–Newton iteration of the live map, when it is predicted to fit
@@ -631,15 +646,17 @@ class Converger:
         # A few iterations per job: each answer is merged as it comes (the map improves
         # while the robot drives) and the next job takes in the edges that arrived meanwhile.
         worker.submit(n, m, self.generation, min(self.iterations, self.job_iterations))
+        self._submitted_at = clock()
         self._sent = m
         self.copy_cost.update(clock() - begin, n)
 
-    def _collect(self) -> None:
+    def _collect(self, clock: Any) -> None:
         if self._worker is None:
             return
         sol = self._worker.poll()
         if sol is None:
             return
+        self._job_s = clock() - self._submitted_at
         if not sol.error:
             assert self._worker.shared is not None
             # Views: no new snapshot is written until this one is merged.
