@@ -27,11 +27,11 @@ Where the solve runs (:class:`Converger`):
   a few exact solves in all and stays deterministic.
 
 While the worker's job is out for much longer than its jobs take, idle steps take damped
-Gauss–Newton iterations of the live map themselves, one at a time, when one is predicted to
-fit (:meth:`Converger.work`): a robot's
-CPU is busy with perception, and a niced worker can starve for seconds (intel at 5 ms beside
-two CPU-bound processes: 181 idle steps left χ² at 5.5 times the optimum), while an
-iteration of a graph of a thousand poses costs a few milliseconds.
+Gauss–Newton steps of the live map themselves, one try at a time, when one is predicted to
+fit (:meth:`Converger.work`): a robot's CPU is busy with perception, and a niced worker can
+starve for seconds (intel at 5 ms beside two CPU-bound processes: 181 idle steps left χ² at
+5.5 times the optimum), while a step of a graph of a thousand poses costs a few
+milliseconds (intel: 4-7 ms).
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 
 from h2o_slam.core import geometry as geo
-from h2o_slam.core.exact import ExactSystem, converge_exact, damped_step
+from h2o_slam.core.exact import ExactSystem, converge_exact
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH
 from h2o_slam.core.robust import RobustConfig, converge_robust, lago_restart, odometry_edges
@@ -65,6 +65,9 @@ BACKGROUNDS = ("process", "inline", "off")
 #: STARVED_MIN_S) is starved: idle steps iterate the live map themselves.
 STARVED_FACTOR = 4.0
 STARVED_MIN_S = 0.1
+#: Damping beyond which a live step that still raises χ² means the map is at a minimum
+#: (``damped_step`` gives up after 12 tries from 0: 1e-6 · 10¹¹).
+LIVE_MAX_DAMPING = 1e5
 
 
 @dataclass(frozen=True)
@@ -487,9 +490,9 @@ class Converger:
         self.inline_cost = CostModel((1e-3, 4e-6), (30000.0,))
         self.merge_cost = CostModel((2e-5, 2e-7), (1000.0,))
         self.copy_cost = CostModel((5e-5, 2e-8), (1000.0,))
-        # A live iteration by edges: a linearization, a factorization and the step's own
-        # linearization (intel, 1,500 edges: 2-3 ms).
-        self.live_cost = CostModel((3e-4, 2e-6), (3000.0,))
+        # A live step by edges: two linearizations and a factorization (measured: intel,
+        # 2,512 edges, 4-7 ms; CSAIL, 1,172, 2 ms).
+        self.live_cost = CostModel((3e-4, 2.5e-6), (3000.0,))
         self._live: ExactSystem | None = None
         self._live_damping = 0.0
         self._live_settled: tuple[int, int, int] | None = None  # (edges, generation, merges)
@@ -546,9 +549,11 @@ class Converger:
                 > max(STARVED_FACTOR * self._job_s, STARVED_MIN_S))
 
     def _iterate_live(self, deadline: float, clock: Any, safety: float) -> None:
-        """One damped Gauss–Newton iteration of the live map, when it is predicted to fit
-        before ``deadline`` and the map has not settled since its edges, subtrees or the
-        last merge changed. The worker's solution still merges over it: solved from an
+        """One try of a damped Gauss–Newton step of the live map, when it is predicted to
+        fit before ``deadline`` and the map has not settled since its edges, subtrees or the
+        last merge changed: kept if χ² fell, else undone with the damping raised for the
+        next idle step (one factorization a call: ``damped_step``'s retries ran an intel
+        iteration to 35 ms). The worker's solution still merges over it: solved from an
         earlier snapshot to convergence, it is at least as good on the edges it holds."""
         solver = self.solver
         key = (solver.num_edges, self.generation, self.state.merges)
@@ -561,14 +566,20 @@ class Converger:
         if self._live is None or self._live.solver is not solver:
             self._live = ExactSystem(solver)
         lin = self._live.linearize()
-        damping, new = damped_step(self._live, lin, self._live_damping)
+        saved = solver.tree.R.copy(), solver.tree.t.copy()
+        self._live.move(lin, self._live_damping)
+        chi2 = self._live.linearize(lin.system).chi2
         self.live_cost.update(clock() - begin, solver.num_edges)
         self.live_iterations += 1
-        tol = solver.config.exact_tolerance
-        if damping is None or lin.chi2 - new.chi2 <= tol * max(lin.chi2, 1e-300):
+        if np.isfinite(chi2) and chi2 <= lin.chi2:
+            self._live_damping /= 10.0
+            if lin.chi2 - chi2 <= solver.config.exact_tolerance * max(lin.chi2, 1e-300):
+                self._live_settled, self._live_damping = key, 0.0
+            return
+        solver.tree.R[:], solver.tree.t[:] = saved
+        self._live_damping = max(1e-6, 10.0 * self._live_damping)
+        if self._live_damping > LIVE_MAX_DAMPING:  # no step helps: at a minimum
             self._live_settled, self._live_damping = key, 0.0
-        else:
-            self._live_damping = damping
 
     def _wanted(self, unlimited: bool, idle: bool) -> bool:
         m = self.solver.num_edges
