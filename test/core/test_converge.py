@@ -160,6 +160,16 @@ def test_a_solution_from_before_a_subtree_move_is_dropped(city):
     np.testing.assert_array_equal(h2o.solver.tree.R, R_before)
 
 
+def _settle_with_worker(h2o: OnlineH2O, graph) -> None:
+    """Feed ``graph`` at 2 ms a step, then step until the worker's solutions hold every edge
+    (at most 60 s)."""
+    _feed(h2o, graph, graph.num_nodes, 2e-3)
+    deadline = time.monotonic() + 60.0
+    while h2o.converger.outside() and time.monotonic() < deadline:
+        h2o.step(2e-3)
+        time.sleep(2e-3)
+
+
 def test_the_worker_process_solves_what_inline_solves(cube):
     """The same snapshot through the worker process and inline: the same optimum, and the
     process ends when its owner closes."""
@@ -169,11 +179,7 @@ def test_the_worker_process_solves_what_inline_solves(cube):
     assert expected is not None and expected.converged
     h2o = OnlineH2O(False, online=OnlineConfig(background="process", freeze_gc=False))
     try:
-        _feed(h2o, cube, cube.num_nodes, 2e-3)
-        deadline = time.monotonic() + 60.0
-        while h2o.converger.outside() and time.monotonic() < deadline:
-            h2o.step(2e-3)
-            time.sleep(2e-3)
+        _settle_with_worker(h2o, cube)
         assert h2o.converger.outside() == 0
         assert h2o.converger.state.failures == 0
         assert h2o.solver.chi2(cube) == pytest.approx(expected.chi2, rel=1e-6)
@@ -199,11 +205,7 @@ def test_every_thread_of_the_worker_is_niced_and_its_blas_has_one(cube):
     callbacks' priority. The worker is niced before any import and runs BLAS on one thread."""
     h2o = OnlineH2O(False, online=OnlineConfig(background="process", freeze_gc=False))
     try:
-        _feed(h2o, cube, cube.num_nodes, 2e-3)
-        deadline = time.monotonic() + 60.0
-        while h2o.converger.outside() and time.monotonic() < deadline:
-            h2o.step(2e-3)
-            time.sleep(2e-3)
+        _settle_with_worker(h2o, cube)
         assert h2o.converger.state.converged_edges == cube.num_edges  # numpy is loaded
         worker = h2o.converger._worker
         assert worker is not None
