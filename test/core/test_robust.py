@@ -307,7 +307,12 @@ def test_only_loop_closure_thresholds_tighten_and_never_loosen():
         thresholds(matched.kind, matched.planar, config.inlier_probability))
 
 
-@pytest.mark.parametrize("kind", ["random", "local"])
+@pytest.mark.parametrize("kind", [
+    "random", "local", "random_grouped",
+    # One of the group, between poses 338 and 352 of 400, is accepted and bends the weakly
+    # tied end of the walk 1.5 m (χ² 46 against the outlier-free map, c̄² 1.7): open.
+    pytest.param("local_grouped", marks=pytest.mark.xfail(strict=True, reason="open")),
+])
 def test_loose_information_does_not_let_false_closures_bend_the_map(kind):
     """With σ 1 m stated on centimetre edges, bending the map onto a false closure costs
     less than the unscaled ``c̄²`` (the control: 9-10 of 10 accepted); with the thresholds
