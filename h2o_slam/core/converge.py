@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 
 from h2o_slam.core import geometry as geo
-from h2o_slam.core.exact import ExactSystem, converge_exact
+from h2o_slam.core.exact import ExactSystem, converge_exact, try_step
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH
 from h2o_slam.core.robust import RobustConfig, converge_robust, lago_restart, odometry_edges
@@ -566,17 +566,14 @@ class Converger:
         if self._live is None or self._live.solver is not solver:
             self._live = ExactSystem(solver)
         lin = self._live.linearize()
-        saved = solver.tree.R.copy(), solver.tree.t.copy()
-        self._live.move(lin, self._live_damping)
-        chi2 = self._live.linearize(lin.system).chi2
+        new = try_step(self._live, lin, self._live_damping)
         self.live_cost.update(clock() - begin, solver.num_edges)
         self.live_iterations += 1
-        if np.isfinite(chi2) and chi2 <= lin.chi2:
+        if new is not None:
             self._live_damping /= 10.0
-            if lin.chi2 - chi2 <= solver.config.exact_tolerance * max(lin.chi2, 1e-300):
+            if lin.chi2 - new.chi2 <= solver.config.exact_tolerance * max(lin.chi2, 1e-300):
                 self._live_settled, self._live_damping = key, 0.0
             return
-        solver.tree.R[:], solver.tree.t[:] = saved
         self._live_damping = max(1e-6, 10.0 * self._live_damping)
         if self._live_damping > LIVE_MAX_DAMPING:  # no step helps: at a minimum
             self._live_settled, self._live_damping = key, 0.0

@@ -160,18 +160,28 @@ def damped_step(system: ExactSystem, lin: WorldLinearization, damping: float
     Returns the damping to use next (None when no step helps) and the linearization at the
     new estimate (``lin`` when none): its χ² scores the step, its system gives the next one.
     """
+    for _ in range(12):
+        new = try_step(system, lin, damping)
+        if new is not None:
+            return damping / 10.0 if damping > 1e-9 else 0.0, new
+        damping = max(1e-6, damping * 10.0)
+    return None, lin
+
+
+def try_step(system: ExactSystem, lin: WorldLinearization, damping: float
+             ) -> WorldLinearization | None:
+    """One try of the step from ``lin`` at ``damping``: the linearization at the new
+    estimate when χ² did not rise, else ``None`` with the solver's poses as they were."""
     solver = system.solver
     saved_R = solver.tree.R.copy()
     saved_t = solver.tree.t.copy()
-    for _ in range(12):
-        system.move(lin, damping)
-        new = system.linearize(lin.system)  # a step moves poses, never the structure
-        if np.isfinite(new.chi2) and new.chi2 <= lin.chi2:
-            return damping / 10.0 if damping > 1e-9 else 0.0, new
-        solver.tree.R[:] = saved_R
-        solver.tree.t[:] = saved_t
-        damping = max(1e-6, damping * 10.0)
-    return None, lin
+    system.move(lin, damping)
+    new = system.linearize(lin.system)  # a step moves poses, never the structure
+    if np.isfinite(new.chi2) and new.chi2 <= lin.chi2:
+        return new
+    solver.tree.R[:] = saved_R
+    solver.tree.t[:] = saved_t
+    return None
 
 
 def converge_exact(solver: H2OSolver, iterations: int) -> tuple[list[float], bool]:
