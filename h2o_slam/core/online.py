@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from h2o_slam.core import geometry as geo
+from h2o_slam.core.blas import BlasLimit
 from h2o_slam.core.converge import BACKGROUNDS, Converger, Solution
 from h2o_slam.core.errors import GraphError
 from h2o_slam.core.geometry import Array
@@ -73,6 +74,10 @@ class OnlineConfig:
             reference counting and young cycles are collected before each freeze, but cycles
             among objects frozen earlier wait for ``gc.unfreeze()`` (``H2ONode.destroy_node``
             calls it).
+        blas_threads: threads of every BLAS the process has loaded while this solver runs
+            (process-wide, :class:`h2o_slam.core.blas.BlasLimit`; restored by :meth:`close`;
+            ``None`` leaves them): a budgeted step's linear algebra is small, and the extra
+            threads of a BLAS spin after each call on the callbacks' core.
         background: where the exact solves that take the map to the optimum run
             (:mod:`h2o_slam.core.converge`): ``"process"`` (a worker process beside the steps),
             ``"inline"`` (within steps, when a whole solve fits the time left, and on a
@@ -111,6 +116,7 @@ class OnlineConfig:
     safety: float = 1.2
     reserve: float = 0.1
     freeze_gc: bool = True
+    blas_threads: int | None = 1
     background: str = "inline"
     merge_share: float = 0.3
     exact_iterations: int = 100
@@ -188,6 +194,8 @@ class OnlineH2O:
         ensure_warm_up()
         self.solver = H2OSolver(planar, config)
         self.online = online or OnlineConfig()
+        self._blas = (None if self.online.blas_threads is None
+                      else BlasLimit(self.online.blas_threads))
         self.cost = UpdateCost()
         self.pending: deque[int] = deque()
         self.waiting: dict[int, int] = {}
@@ -230,8 +238,11 @@ class OnlineH2O:
         self._arrived = False  # an edge or pose arrived since the last step
 
     def close(self) -> None:
-        """Stop the exact solver's worker process, if any."""
+        """Stop the exact solver's worker process, if any, and give the process's BLAS its
+        threads back."""
         self.converger.close()
+        if self._blas is not None:
+            self._blas.restore()
 
     # -- adding -------------------------------------------------------------------------------
 
