@@ -278,7 +278,13 @@ def _worker_main(conn: Connection, reply: Connection) -> None:
 # Niced before anything is imported: Linux's nice is per thread, and a thread takes its
 # creator's, so the BLAS library's threads, started when numpy loads, would otherwise run at
 # the callbacks' priority (measured: the node's callbacks up to 14 ms at a 5 ms budget).
+# And SCHED_IDLE where there is one: at nice 19 the scheduler still gives the worker a slice
+# of a core it shares with the callbacks every ~200 ms of contention, and on two cores it
+# shared one for 10 ms at a time while the other was idle (the callbacks waiting 8-12 ms,
+# /proc/<tid>/schedstat); an idle-class task gets the CPU only when nothing else wants it.
 _WORKER_CODE = ("import os\ntry:\n    os.nice(19)\nexcept OSError:\n    pass\n"
+                "try:\n    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))\n"
+                "except (AttributeError, OSError):\n    pass\n"
                 "import signal; signal.signal(signal.SIGINT, signal.SIG_IGN); import sys; "
                 "from h2o_slam.core.converge import worker_main; worker_main(sys.argv[1:])")
 

@@ -200,9 +200,10 @@ def _nice_of_threads(pid: int) -> list[int]:
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux's /proc")
-def test_every_thread_of_the_worker_is_niced_and_its_blas_has_one(cube):
-    """Linux's nice is per thread: the BLAS threads numpy starts must not run at the
-    callbacks' priority. The worker is niced before any import and runs BLAS on one thread."""
+def test_every_thread_of_the_worker_is_niced_idle_class_and_its_blas_has_one(cube):
+    """Linux's nice and scheduling class are per thread: the BLAS threads numpy starts must
+    not run at the callbacks' priority. The worker is niced and SCHED_IDLE before any import
+    and runs BLAS on one thread."""
     h2o = OnlineH2O(False, online=OnlineConfig(background="process", freeze_gc=False))
     try:
         _settle_with_worker(h2o, cube)
@@ -211,6 +212,8 @@ def test_every_thread_of_the_worker_is_niced_and_its_blas_has_one(cube):
         assert worker is not None
         pid = worker._process.pid
         assert set(_nice_of_threads(pid)) == {19}
+        tids = [int(task.name) for task in Path(f"/proc/{pid}/task").iterdir()]
+        assert {os.sched_getscheduler(tid) for tid in tids} == {os.SCHED_IDLE}
         environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
         assert b"OPENBLAS_NUM_THREADS=1" in environ and b"OMP_NUM_THREADS=1" in environ
     finally:
