@@ -38,7 +38,8 @@ from its spanning tree of odometry edges; odometry never gets a kernel):
   runs by default. Time: the call.
 - ``node``: the node's path, planar graphs only (:func:`mapper_stream.stream_graph`: the
   rclpy-free ``Mapper`` at a 5 ms budget with its worker process, odometry, closures and
-  fixes in stream order, one pose per callback, 1 s of idle steps, then ``~/exact_solve``),
+  fixes in stream order, one pose per callback, 1 ms between callbacks, 1 s of idle steps,
+  then ``~/exact_solve``),
   in a process that runs nothing else, as ``h2o_node``'s (:class:`Workers`).
   Its odometry noise model is the mapper's own, so its rows are compared with its own map of
   the outlier-free graph (χ²_true over that map's); the callback column gives the p99 and
