@@ -51,7 +51,12 @@ from typing import Any
 import numpy as np
 
 from h2o_slam.core import geometry as geo
-from h2o_slam.core.exact import ExactSystem, converge_exact, try_step
+from h2o_slam.core.exact import (
+    ExactSystem,
+    WorldLinearization,
+    WorldSystem,
+    converge_exact,
+)
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH
 from h2o_slam.core.robust import RobustConfig, converge_robust, lago_restart, odometry_edges
@@ -461,6 +466,119 @@ def merge_solution(tree: PoseTree, sol: Solution, lo: int, hi: int) -> None:
     tree.t[i] = t_loc
 
 
+class LiveIterations:
+    """Damped Gauss–Newton on the live map itself, in phases that each fit an idle step of a
+    few milliseconds: no whole iteration does on a graph of a few thousand edges (intel,
+    2,512 edges: linearizing 1.4 ms, the factorization and solve 1.0, scoring the step's
+    poses 1.4, the tree taking them 1.3).
+
+    The phases, each run when its cost model predicts it fits the time left: the system of
+    the edges and free nodes (once per ``key``), the linearization at the tree's poses, the
+    damped step solved and scored at its poses with the tree untouched, and the tree taking
+    a step that lowered χ² (whose linearization is the next step's). A step that raises χ²
+    is never seen by the map: its damping is raised for the next try. A phase left half-way
+    is dropped when the key (edges, generation, merges) or the tree changed in between.
+    """
+
+    def __init__(self, solver: H2OSolver) -> None:
+        self.system = ExactSystem(solver)
+        self.damping = 0.0
+        self.iterations = 0
+        self._key: tuple[int, int, int] | None = None
+        self._settled: tuple[int, int, int] | None = None
+        self._world: WorldSystem | None = None
+        self._lin: WorldLinearization | None = None
+        self._trial: WorldLinearization | None = None  # a step that lowered χ², not taken
+        self._tree: tuple[Array, Array] | None = None  # the tree the linearization is of
+        # Seconds by edges (system, linearization, solve and score) and by nodes (taking a
+        # step); priors from intel's numbers above.
+        self.system_cost = CostModel((2e-4, 1e-6), (3000.0,))
+        self.lin_cost = CostModel((2e-4, 6e-7), (3000.0,))
+        self.solve_cost = CostModel((3e-4, 1e-6), (3000.0,))
+        self.take_cost = CostModel((1e-4, 8e-7), (3000.0,))
+
+    @property
+    def settled(self) -> bool:
+        """No step helps the map of the current key (set by :meth:`run`)."""
+        return self._settled is not None and self._settled == self._key
+
+    def run(self, key: tuple[int, int, int], deadline: float, clock: Any,
+            safety: float) -> None:
+        """The phases that fit before ``deadline`` for the map of ``key``."""
+        if key == self._settled:
+            return
+        if key != self._key or not self._tree_is_kept():
+            self._key, self._world, self._lin, self._trial = key, None, None, None
+        solver = self.system.solver
+        m, n = solver.num_edges, solver.num_nodes
+        while True:
+            if self._world is None:
+                if not _fits(self.system_cost, m, deadline, clock, safety):
+                    return
+                begin = clock()
+                self._world = self.system.system()
+                self.system_cost.update(clock() - begin, m)
+            elif self._lin is None:
+                if not _fits(self.lin_cost, m, deadline, clock, safety):
+                    return
+                begin = clock()
+                self._lin = self.system.linearize(self._world)
+                self.lin_cost.update(clock() - begin, m)
+                self._keep_tree()
+            elif self._trial is None:
+                if not _fits(self.solve_cost, m, deadline, clock, safety):
+                    return
+                begin = clock()
+                self._try(self._lin)
+                self.solve_cost.update(clock() - begin, m)
+                if self.damping > LIVE_MAX_DAMPING:  # no step helps: at a minimum
+                    self._settle(key)
+                    return
+            else:
+                if not _fits(self.take_cost, n, deadline, clock, safety):
+                    return
+                begin = clock()
+                solver.tree.set_world_poses(self._trial.R, self._trial.x)
+                self.take_cost.update(clock() - begin, n)
+                self.iterations += 1
+                before, self._lin, self._trial = self._lin.chi2, self._trial, None
+                self._keep_tree()
+                # converge_exact's test, so that the iterations are its own
+                if before - self._lin.chi2 <= solver.config.exact_tolerance * max(
+                        before, 1e-300):
+                    self._settle(key)
+                    return
+
+    def _try(self, lin: WorldLinearization) -> None:
+        """Solve the damped step from ``lin`` and score it at its poses."""
+        R, x = self.system.trial(lin, self.damping)
+        new = self.system.linearize_at(R, x, lin.system)
+        if np.isfinite(new.chi2) and new.chi2 <= lin.chi2:
+            self._trial = new
+            self.damping = self.damping / 10.0 if self.damping > 1e-9 else 0.0
+        else:
+            self.damping = max(1e-6, 10.0 * self.damping)
+
+    def _settle(self, key: tuple[int, int, int]) -> None:
+        self._settled, self._lin, self._trial, self.damping = key, None, None, 0.0
+
+    def _keep_tree(self) -> None:
+        tree, n = self.system.solver.tree, self.system.solver.num_nodes
+        self._tree = (tree.R[:n].copy(), tree.t[:n].copy())
+
+    def _tree_is_kept(self) -> bool:
+        """The tree is as the last phase left it (nothing else moved a pose since)."""
+        if self._tree is None:
+            return True
+        tree, n = self.system.solver.tree, self.system.solver.num_nodes
+        R, t = self._tree
+        return len(R) == n and np.array_equal(tree.R[:n], R) and np.array_equal(tree.t[:n], t)
+
+
+def _fits(cost: CostModel, size: float, deadline: float, clock: Any, safety: float) -> bool:
+    return cost.predict(size) * cost.margin(safety) <= deadline - clock()
+
+
 class Converger:
     """Keeps the live solver's map converging to the optimum of the edges so far; see the
     module docstring. :meth:`work` is called from every step with that step's deadline."""
@@ -496,16 +614,9 @@ class Converger:
         self.inline_cost = CostModel((1e-3, 4e-6), (30000.0,))
         self.merge_cost = CostModel((2e-5, 2e-7), (1000.0,))
         self.copy_cost = CostModel((5e-5, 2e-8), (1000.0,))
-        # A live step by edges: two linearizations and a factorization (measured: intel,
-        # 2,512 edges, 4-7 ms; CSAIL, 1,172, 2 ms).
-        self.live_cost = CostModel((3e-4, 2.5e-6), (3000.0,))
-        self._live: ExactSystem | None = None
-        self._live_damping = 0.0
-        self._live_settled: tuple[int, int, int] | None = None  # (edges, generation, merges)
+        self._live: LiveIterations | None = None
         self._submitted_at = 0.0
         self._job_s = 0.0  # how long the last job took, submitted to collected
-        #: Live iterations taken (idle steps while the worker solved).
-        self.live_iterations = 0
 
     @property
     def enabled(self) -> bool:
@@ -555,34 +666,19 @@ class Converger:
                 > max(STARVED_FACTOR * self._job_s, STARVED_MIN_S))
 
     def _iterate_live(self, deadline: float, clock: Any, safety: float) -> None:
-        """One try of a damped Gauss–Newton step of the live map, when it is predicted to
-        fit before ``deadline`` and the map has not settled since its edges, subtrees or the
-        last merge changed: kept if χ² fell, else undone with the damping raised for the
-        next idle step (one factorization a call: ``damped_step``'s retries ran an intel
-        iteration to 35 ms). The worker's solution still merges over it: solved from an
-        earlier snapshot to convergence, it is at least as good on the edges it holds."""
-        solver = self.solver
-        key = (solver.num_edges, self.generation, self.state.merges)
-        if key == self._live_settled:
-            return
-        if self.live_cost.predict(solver.num_edges) * self.live_cost.margin(safety) > (
-                deadline - clock()):
-            return
-        begin = clock()
-        if self._live is None or self._live.solver is not solver:
-            self._live = ExactSystem(solver)
-        lin = self._live.linearize()
-        new = try_step(self._live, lin, self._live_damping)
-        self.live_cost.update(clock() - begin, solver.num_edges)
-        self.live_iterations += 1
-        if new is not None:
-            self._live_damping /= 10.0
-            if lin.chi2 - new.chi2 <= solver.config.exact_tolerance * max(lin.chi2, 1e-300):
-                self._live_settled, self._live_damping = key, 0.0
-            return
-        self._live_damping = max(1e-6, 10.0 * self._live_damping)
-        if self._live_damping > LIVE_MAX_DAMPING:  # no step helps: at a minimum
-            self._live_settled, self._live_damping = key, 0.0
+        """Damped Gauss–Newton on the live map, as many of its phases as are predicted to
+        fit before ``deadline`` (:class:`LiveIterations`). The worker's solution still
+        merges over it: solved from an earlier snapshot to convergence, it is at least as
+        good on the edges it holds."""
+        if self._live is None:
+            self._live = LiveIterations(self.solver)
+        self._live.run((self.solver.num_edges, self.generation, self.state.merges),
+                       deadline, clock, safety)
+
+    @property
+    def live_iterations(self) -> int:
+        """Steps the live map took in idle steps while the worker starved."""
+        return 0 if self._live is None else self._live.iterations
 
     def _wanted(self, unlimited: bool, idle: bool) -> bool:
         m = self.solver.num_edges

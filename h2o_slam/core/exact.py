@@ -57,9 +57,18 @@ class ExactSystem:
         free nodes are then not derived and compared again.
         """
         R, x = self.solver.world_poses()
-        system = self._system() if kept is None else kept
+        return self.linearize_at(R, x, self.system() if kept is None else kept)
+
+    def linearize_at(self, R: Array, x: Array, system: WorldSystem) -> WorldLinearization:
+        """Every edge of ``system`` linearized at the world poses ``(R, x)``, which need not
+        be the solver's: a step is scored before the tree takes it."""
         data, g, chi2 = system.normal_equations(self.solver, R, x)
         return WorldLinearization(R, x, system, data, g, chi2)
+
+    def trial(self, lin: WorldLinearization, damping: float = 0.0) -> tuple[Array, Array]:
+        """The world poses the damped step from ``lin`` leads to (the tree untouched):
+        each pose moved on its own, ``R ← Exp(ω) R``, ``x ← x + δx`` (see :meth:`move`)."""
+        return _retracted(lin.R, lin.x, self._world_step(lin, damping))
 
     def step(self, damping: float = 0.0, lin: WorldLinearization | None = None
              ) -> tuple[Array, np.ndarray]:
@@ -89,9 +98,8 @@ class ExactSystem:
         steps were refused, the damping rose and 100 iterations ended 860× above the optimum
         that world-coordinate steps reach in a dozen.
         """
-        step = self._world_step(lin, damping)
         # set_world_poses renormalizes the local rotations it derives.
-        self.solver.tree.set_world_poses(*_retracted(lin.R, lin.x, step))
+        self.solver.tree.set_world_poses(*self.trial(lin, damping))
 
     def _world_step(self, lin: WorldLinearization, damping: float) -> Array:
         """The damped Gauss–Newton step ``(δx, ω)`` of every node, ``(n, 6)`` (zero where held)."""
@@ -105,11 +113,11 @@ class ExactSystem:
         """``(H, g, free)`` at the current estimate: the full symmetric ``H = JᵀJ`` and
         ``g = Jᵀr`` over the free nodes' world perturbations (node-major, ``p`` per node),
         and the free nodes."""
-        system = self._system()
+        system = self.system()
         data, g, _ = system.normal_equations(self.solver, *self.solver.world_poses())
         return system.matrix(data), g, system.free
 
-    def _system(self) -> WorldSystem:
+    def system(self) -> WorldSystem:
         """The system of the solver's edges and free nodes: the kept one while they stay."""
         s = self.solver
         free = self._free_nodes(s.a, s.b)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
@@ -13,9 +14,17 @@ import numpy as np
 import pytest
 
 from h2o_slam.core import geometry as geo
-from h2o_slam.core.converge import ExactProblem, Solution, merge_solution
+from h2o_slam.core.converge import ExactProblem, LiveIterations, Solution, merge_solution
+from h2o_slam.core.exact import converge_exact
 from h2o_slam.core.graph import chi2
-from h2o_slam.core.modes import add_arrival, arrivals, prefix_graph, solve_exact, solve_online
+from h2o_slam.core.modes import (
+    add_arrival,
+    arrivals,
+    build_solver,
+    prefix_graph,
+    solve_exact,
+    solve_online,
+)
 from h2o_slam.core.online import OnlineConfig, OnlineH2O
 from h2o_slam.io.synthetic import grid3d, manhattan
 
@@ -230,7 +239,7 @@ def _starved(h2o: OnlineH2O) -> int:
 
 def test_idle_steps_iterate_the_live_map_while_the_worker_starves(city):
     """The worker never answers (stopped): idle steps alone bring the map to the optimum,
-    one damped Gauss–Newton iteration of the live map each."""
+    damped Gauss–Newton on the live map in phases that fit them."""
     optimum = solve_exact(city, iterations=50).chi2_final
     h2o = OnlineH2O(True, online=OnlineConfig(background="process", freeze_gc=False))
     pid = _starved(h2o)
@@ -241,7 +250,7 @@ def test_idle_steps_iterate_the_live_map_while_the_worker_starves(city):
         deadline = time.monotonic() + 60.0
         steps = 0
         while time.monotonic() < deadline and (
-                steps < 50 or h2o.converger._live_settled is None):
+                steps < 50 or h2o.converger._live is None or not h2o.converger._live.settled):
             h2o.step(0.05)  # idle steps 10 ms apart: the job is soon overdue
             time.sleep(0.01)
             steps += 1
@@ -380,3 +389,78 @@ def test_a_worker_that_does_not_exit_is_abandoned_not_raised(tmp_path) -> None:
     stuck = Stuck()
     converge._shutdown(conn, reply, stuck, folder)  # type: ignore[arg-type]
     assert stuck.killed and not folder.exists()
+
+
+# -- live iterations --------------------------------------------------------------------------
+
+
+def _far_solver(graph):
+    """The graph's solver at its odometry tree's start (far from the optimum)."""
+    solver, _ = build_solver(graph, init="tree", regularizer=False)
+    return solver
+
+
+class _OnePhase:
+    """A clock under which one phase of a live iteration fits per run: readings before and
+    at the phase's start say no time has passed, then a millisecond, then the deadline."""
+
+    def __init__(self, deadline: float) -> None:
+        self.deadline, self.reads = deadline, 0
+
+    def __call__(self) -> float:
+        self.reads += 1
+        return (0.0, 0.0, 1e-3)[self.reads - 1] if self.reads <= 3 else self.deadline
+
+
+def test_live_iterations_take_converge_exacts_steps(city):
+    """Unhurried, the live iterations are damped Gauss–Newton itself: converge_exact's
+    iterations, to the same χ² history and poses."""
+    reference = _far_solver(city)
+    history, converged = converge_exact(reference, 100)
+    assert converged and len(history) > 3
+    solver = _far_solver(city)
+    live = LiveIterations(solver)
+    live.run((solver.num_edges, 0, 0), math.inf, time.perf_counter, 1.0)
+    assert live.settled
+    assert live.iterations == len(history) - 1
+    assert solver.chi2(city) == pytest.approx(history[-1], rel=1e-9)
+    np.testing.assert_allclose(solver.world_poses()[1], reference.world_poses()[1], atol=1e-7)
+
+
+def test_live_iterations_in_one_phase_per_step_never_show_a_worse_map(city):
+    """One phase per idle step: the map only ever takes steps that lowered χ², and ends where
+    the unhurried iterations do."""
+    solver = _far_solver(city)
+    live = LiveIterations(solver)
+    seen = [solver.chi2(city)]
+    runs = 0
+    while not live.settled and runs < 2000:
+        live.run((solver.num_edges, 0, 0), 1.0, _OnePhase(1.0), 1.0)
+        seen.append(solver.chi2(city))
+        runs += 1
+    assert live.settled and live.iterations > 2
+    assert runs >= 2 + 2 * live.iterations  # system, linearization, then solve and take
+    assert np.all(np.diff(seen) <= 1e-9 * np.array(seen[:-1]))
+    reference = _far_solver(city)
+    history, _ = converge_exact(reference, 100)
+    assert seen[-1] == pytest.approx(history[-1], rel=1e-9)
+
+
+def test_a_live_iteration_half_way_is_dropped_when_the_map_moves(city):
+    """Poses moved between two phases (a merge, a spread): the linearization of the old
+    poses is not used; the next phases start again from the map as it is."""
+    solver = _far_solver(city)
+    live = LiveIterations(solver)
+    key = (solver.num_edges, 0, 0)
+    for _ in range(2):  # the system, then the linearization
+        live.run(key, 1.0, _OnePhase(1.0), 1.0)
+    assert live._lin is not None
+    R, t = solver.world_poses()
+    solver.tree.set_world_poses(R, t + 0.5)  # the whole map shifted: the gauge, same χ²
+    live.run(key, math.inf, time.perf_counter, 1.0)
+    assert live.settled
+    R_new, t_new = solver.world_poses()
+    reference = _far_solver(city)
+    reference.tree.set_world_poses(R, t + 0.5)
+    converge_exact(reference, 100)
+    np.testing.assert_allclose(t_new, reference.world_poses()[1], atol=1e-7)
