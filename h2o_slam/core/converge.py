@@ -477,7 +477,7 @@ class LiveIterations:
     damped step solved and scored at its poses with the tree untouched, and the tree taking
     a step that lowered χ² (whose linearization is the next step's). A step that raises χ²
     is never seen by the map: its damping is raised for the next try. A phase left half-way
-    is dropped when the key (edges, generation, merges) or the tree changed in between.
+    is dropped when the key (edges, generation, merges) or a world pose changed in between.
     """
 
     def __init__(self, solver: H2OSolver) -> None:
@@ -489,7 +489,6 @@ class LiveIterations:
         self._world: WorldSystem | None = None
         self._lin: WorldLinearization | None = None
         self._trial: WorldLinearization | None = None  # a step that lowered χ², not taken
-        self._tree: tuple[Array, Array] | None = None  # the tree the linearization is of
         # Seconds by edges (system, linearization, solve and score) and by nodes (taking a
         # step); priors from intel's numbers above.
         self.system_cost = CostModel((2e-4, 1e-6), (3000.0,))
@@ -507,8 +506,10 @@ class LiveIterations:
         """The phases that fit before ``deadline`` for the map of ``key``."""
         if key == self._settled:
             return
-        if key != self._key or not self._tree_is_kept():
+        if key != self._key:
             self._key, self._world, self._lin, self._trial = key, None, None, None
+        elif not self._poses_kept():
+            self._lin, self._trial = None, None
         solver = self.system.solver
         m, n = solver.num_edges, solver.num_nodes
         while True:
@@ -524,13 +525,17 @@ class LiveIterations:
                 begin = clock()
                 self._lin = self.system.linearize(self._world)
                 self.lin_cost.update(clock() - begin, m)
-                self._keep_tree()
             elif self._trial is None:
                 if not _fits(self.solve_cost, m, deadline, clock, safety):
                     return
                 begin = clock()
+                first = not self._lin.system.factor_ready
                 self._try(self._lin)
-                self.solve_cost.update(clock() - begin, m)
+                if not first:
+                    # A system's first solve runs the factorization's symbolic analysis
+                    # too (intel: 2.9 ms against 1.0): as a sample it would keep every
+                    # later solve from fitting, and none would run to correct it.
+                    self.solve_cost.update(clock() - begin, m)
                 if self.damping > LIVE_MAX_DAMPING:  # no step helps: at a minimum
                     self._settle(key)
                     return
@@ -542,7 +547,6 @@ class LiveIterations:
                 self.take_cost.update(clock() - begin, n)
                 self.iterations += 1
                 before, self._lin, self._trial = self._lin.chi2, self._trial, None
-                self._keep_tree()
                 # converge_exact's test, so that the iterations are its own
                 if before - self._lin.chi2 <= solver.config.exact_tolerance * max(
                         before, 1e-300):
@@ -562,17 +566,20 @@ class LiveIterations:
     def _settle(self, key: tuple[int, int, int]) -> None:
         self._settled, self._lin, self._trial, self.damping = key, None, None, 0.0
 
-    def _keep_tree(self) -> None:
-        tree, n = self.system.solver.tree, self.system.solver.num_nodes
-        self._tree = (tree.R[:n].copy(), tree.t[:n].copy())
-
-    def _tree_is_kept(self) -> bool:
-        """The tree is as the last phase left it (nothing else moved a pose since)."""
-        if self._tree is None:
+    def _poses_kept(self) -> bool:
+        """The map's world poses are those the linearization was taken at: nothing moved a
+        pose since (a re-parenting by the balancing moves none, a merge or a spread does)."""
+        if self._lin is None:
             return True
-        tree, n = self.system.solver.tree, self.system.solver.num_nodes
-        R, t = self._tree
-        return len(R) == n and np.array_equal(tree.R[:n], R) and np.array_equal(tree.t[:n], t)
+        R, x = self.system.solver.world_poses()
+        lin = self._lin
+        return (len(x) == len(lin.x) and np.allclose(x, lin.x, rtol=0.0, atol=POSE_KEPT_M)
+                and np.allclose(R, lin.R, rtol=0.0, atol=POSE_KEPT_M))
+
+
+#: World poses this close (metres, and rotation-matrix entries) to a linearization's are the
+#: same poses: a re-parenting recomposes them to within rounding.
+POSE_KEPT_M = 1e-9
 
 
 def _fits(cost: CostModel, size: float, deadline: float, clock: Any, safety: float) -> bool:

@@ -284,6 +284,11 @@ class WorldSystem:
         self._gather = var.ravel()
         self.factor = SPDFactor(self.indptr, self.indices)
 
+    @property
+    def factor_ready(self) -> bool:
+        """The factorization's symbolic analysis is done (a solve ran on this system)."""
+        return self.factor.analyzed
+
     def fits(self, a: np.ndarray, b: np.ndarray, free: np.ndarray, num_nodes: int) -> bool:
         """Whether this system is the one of these edges and free nodes."""
         return (num_nodes == self.num_nodes and np.array_equal(free, self.free)

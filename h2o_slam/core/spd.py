@@ -98,6 +98,12 @@ class SPDFactor:
         self.indices = np.asarray(indices, dtype=np.int64)
         self._backend: _Cholmod | _QDLDL | None = None
 
+    @property
+    def analyzed(self) -> bool:
+        """The next solve pays no symbolic analysis: one ran and is kept (SuperLU keeps none
+        and pays it every time)."""
+        return self.method == "splu" or self._backend is not None
+
     def solve(self, data: Array, rhs: Array) -> Array:
         """Factor the matrix with values ``data`` (in the pattern's order) and solve
         ``A x = rhs`` (``rhs`` a vector, or a matrix of right-hand sides as columns).
