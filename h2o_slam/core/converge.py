@@ -26,12 +26,12 @@ Where the solve runs (:class:`Converger`):
   those in it, and whenever :meth:`OnlineH2O.converge` asks) so that replaying a bag costs
   a few exact solves in all and stays deterministic.
 
-While the worker's job is out for much longer than its jobs take, idle steps take damped
-Gauss–Newton steps of the live map themselves, one try at a time, when one is predicted to
-fit (:meth:`Converger.work`): a robot's CPU is busy with perception, and a niced worker can
+While the worker's job is out for much longer than its jobs take, idle steps run damped
+Gauss–Newton on the live map themselves, phase by phase as each is predicted to fit
+(:class:`LiveIterations`): a robot's CPU is busy with perception, and a niced worker can
 starve for seconds (intel at 5 ms beside two CPU-bound processes: 181 idle steps left χ² at
-5.5 times the optimum), while a step of a graph of a thousand poses costs a few
-milliseconds (intel: 4-7 ms).
+5.5 times the optimum), while each phase of an iteration of a graph of a thousand poses
+costs a millisecond or two.
 """
 
 from __future__ import annotations
@@ -56,6 +56,8 @@ from h2o_slam.core.exact import (
     WorldLinearization,
     WorldSystem,
     converge_exact,
+    next_damping,
+    scored_step,
 )
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH
@@ -555,13 +557,8 @@ class LiveIterations:
 
     def _try(self, lin: WorldLinearization) -> None:
         """Solve the damped step from ``lin`` and score it at its poses."""
-        R, x = self.system.trial(lin, self.damping)
-        new = self.system.linearize_at(R, x, lin.system)
-        if np.isfinite(new.chi2) and new.chi2 <= lin.chi2:
-            self._trial = new
-            self.damping = self.damping / 10.0 if self.damping > 1e-9 else 0.0
-        else:
-            self.damping = max(1e-6, 10.0 * self.damping)
+        self._trial = scored_step(self.system, lin, self.damping)
+        self.damping = next_damping(self.damping, self._trial is not None)
 
     def _settle(self, key: tuple[int, int, int]) -> None:
         self._settled, self._lin, self._trial, self.damping = key, None, None, 0.0

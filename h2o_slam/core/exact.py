@@ -169,27 +169,30 @@ def damped_step(system: ExactSystem, lin: WorldLinearization, damping: float
     new estimate (``lin`` when none): its χ² scores the step, its system gives the next one.
     """
     for _ in range(12):
-        new = try_step(system, lin, damping)
+        new = scored_step(system, lin, damping)
+        damping = next_damping(damping, new is not None)
         if new is not None:
-            return damping / 10.0 if damping > 1e-9 else 0.0, new
-        damping = max(1e-6, damping * 10.0)
+            system.solver.tree.set_world_poses(new.R, new.x)
+            return damping, new
     return None, lin
 
 
-def try_step(system: ExactSystem, lin: WorldLinearization, damping: float
-             ) -> WorldLinearization | None:
-    """One try of the step from ``lin`` at ``damping``: the linearization at the new
-    estimate when χ² did not rise, else ``None`` with the solver's poses as they were."""
-    solver = system.solver
-    saved_R = solver.tree.R.copy()
-    saved_t = solver.tree.t.copy()
-    system.move(lin, damping)
-    new = system.linearize(lin.system)  # a step moves poses, never the structure
-    if np.isfinite(new.chi2) and new.chi2 <= lin.chi2:
-        return new
-    solver.tree.R[:] = saved_R
-    solver.tree.t[:] = saved_t
-    return None
+def scored_step(system: ExactSystem, lin: WorldLinearization, damping: float
+                ) -> WorldLinearization | None:
+    """The step from ``lin`` at ``damping`` scored at its poses, the tree untouched: the
+    linearization there when χ² did not rise (the tree may take its poses), else ``None``.
+    A step moves poses, never the structure: ``lin``'s system serves."""
+    R, x = system.trial(lin, damping)
+    new = system.linearize_at(R, x, lin.system)
+    return new if np.isfinite(new.chi2) and new.chi2 <= lin.chi2 else None
+
+
+def next_damping(damping: float, accepted: bool) -> float:
+    """Levenberg's schedule: a tenth after a step that helped (none once it is negligible),
+    ten times (at least 1e-6) after one that did not."""
+    if accepted:
+        return damping / 10.0 if damping > 1e-9 else 0.0
+    return max(1e-6, damping * 10.0)
 
 
 def converge_exact(solver: H2OSolver, iterations: int) -> tuple[list[float], bool]:
