@@ -92,9 +92,11 @@ def random_graph(
     )
 
 
-def loop_graph(seed: int, planar: bool, n: int, reverse: bool) -> PoseGraph:
+def loop_graph(seed: int, planar: bool, n: int, reverse: bool,
+               closures: tuple[tuple[int, int], ...] = ()) -> PoseGraph:
     """A dead-reckoned chain of ``n`` poses (noisy odometry, its own start) closed by one
-    edge from the last pose to the first (``reverse``) or the first to the last."""
+    edge from the last pose to the first (``reverse``) or the first to the last, after the
+    other ``closures`` ``(a, b)``."""
     rng = np.random.default_rng(seed)
     dof = geo.PLANAR_DOF if planar else np.arange(6)
     truth_R, truth_t = [np.eye(3)], [np.zeros(3)]
@@ -105,7 +107,7 @@ def loop_graph(seed: int, planar: bool, n: int, reverse: bool) -> PoseGraph:
         R, t = geo.compose(truth_R[-1], truth_t[-1], geo.so3_exp(w), step)
         truth_R.append(R)
         truth_t.append(t)
-    pairs = np.array([(i, i + 1) for i in range(n - 1)]
+    pairs = np.array([(i, i + 1) for i in range(n - 1)] + list(closures)
                      + [(n - 1, 0) if reverse else (0, n - 1)])
     a, b = pairs[:, 0], pairs[:, 1]
     m = len(pairs)

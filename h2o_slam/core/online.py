@@ -37,7 +37,7 @@ from h2o_slam.core.converge import BACKGROUNDS, Converger, Solution
 from h2o_slam.core.errors import GraphError
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, edge_chi2
-from h2o_slam.core.loop_spread import planar_edge_chi2, spread_loop
+from h2o_slam.core.loop_spread import LoopSolve, planar_edge_chi2, spread_loop
 from h2o_slam.core.robust import RobustConfig
 from h2o_slam.core.solver import H2OSolver, SolverConfig
 from h2o_slam.core.timing import CostModel, UpdateCost
@@ -99,6 +99,10 @@ class OnlineConfig:
             only if the χ² of the edges it moves falls), then relaxed as any edge; so is one
             that a merged exact solution, older than it, left out.
         spread_steps: Gauss–Newton steps of a spread.
+        solve_loops: with ``spread_loops``, the poses after a new closure's older end are
+            first solved by Gauss–Newton with everything older held
+            (:class:`~h2o_slam.core.loop_spread.LoopSolve`) wherever a few iterations fit the
+            step's budget; the spread serves the loops too long for it.
         robust: the exact solves weigh loop closures and GPS fixes as possible outliers
             (:mod:`h2o_slam.core.robust`; odometry trusted) and each merged solution sets
             every edge's weight, so a decision is revised by every solve; ``None``: least
@@ -124,6 +128,7 @@ class OnlineConfig:
     unlimited_s: float = 1.0
     spread_loops: bool = True
     spread_steps: int = 2
+    solve_loops: bool = True
     robust: RobustConfig | None = None
 
     def __post_init__(self) -> None:
@@ -210,6 +215,8 @@ class OnlineH2O:
         #: Seconds a spread costs: fixed, and per node and edge it moves (measured on
         #: kitti_00's first loop, 2.2 ms for 2900).
         self.spread_cost = CostModel((3e-4, 7.5e-7), (1000.0,))
+        #: The loop solved where it fits (before the spread is tried).
+        self.loop_solve = LoopSolve()
         #: Closures a merged solution left out, to spread again (:meth:`_after_merge`).
         self._respread: deque[int] = deque()
         self._spread_tries: dict[int, int] = {}
@@ -759,21 +766,31 @@ class OnlineH2O:
             self._respread.popleft()
 
     def _spread(self, edge: int, deadline: float) -> bool:
-        """Spread a loop closure along its odometry chain (:mod:`h2o_slam.core.loop_spread`)
-        when the chain is whole and it lowers the χ² of the edges it moves; counted in
-        :attr:`spreads` as ``kept`` or ``refused`` (the χ² did not fall). False, doing
-        nothing, when it is predicted not to fit before ``deadline`` (counted ``late``)."""
+        """The first correction of a loop closure (:mod:`h2o_slam.core.loop_spread`): the
+        poses after its older end solved by Gauss–Newton where a few iterations fit
+        (counted ``solved`` in :attr:`spreads`), else its error spread along its odometry
+        chain when the chain is whole (``kept``); ``refused`` when the χ² of the edges it
+        moves did not fall. False, doing nothing, when neither is predicted to fit before
+        ``deadline`` (counted ``late``)."""
         solver = self.solver
         a, b = int(solver.a[edge]), int(solver.b[edge])
         if solver.kind[edge] != EdgeKind.RELATIVE or abs(a - b) < 2 or solver.weight[edge] <= 0:
             return True
         lo, hi = min(a, b), max(a, b)
-        chain = self._odometry_edge[lo + 1: hi + 1]
-        if len(chain) < hi - lo or np.any(chain < 0):
-            return True
         r = solver.residual(edge)
         if float(r @ r) < SPREAD_MIN_CHI2:
             return True  # the tree path's update is enough
+        if self.online.solve_loops:
+            loop = self.loop_solve
+            free, edges = loop.problem(solver, lo)
+            if loop.fits(len(free) + len(edges), deadline, self._clock, self.online.safety):
+                kept, converged = loop.run(solver, free, edges, deadline, self._clock,
+                                           self.online.safety)
+                self._count_spread(edge, kept, "solved")
+                return converged  # else it goes on in the next step, from the poses reached
+        chain = self._odometry_edge[lo + 1: hi + 1]
+        if len(chain) < hi - lo or np.any(chain < 0):
+            return True
         m = solver.num_edges
         touched = (solver.a[:m] > lo) | (solver.b[:m] > lo)
         work = (solver.num_nodes - lo) + int(np.count_nonzero(touched))
@@ -793,13 +810,17 @@ class OnlineH2O:
         after = _moved_chi2(graph, edges, solver.weight[:m], R_new, t_new)
         if after < before:
             solver.tree.set_world_poses(R_new, t_new)
+        self._count_spread(edge, after < before, "kept")
+        self.spread_cost.update(self._clock() - begin, work)
+        return True
+
+    def _count_spread(self, edge: int, kept: bool, how: str) -> None:
+        if kept:
             self._spread_kept.add(edge)
-            self.spreads["kept"] += 1
+            self.spreads[how] += 1
         else:
             self._spread_kept.discard(edge)
             self.spreads["refused"] += 1
-        self.spread_cost.update(self._clock() - begin, work)
-        return True
 
     def _relax_gps(self, edge: int, deadline: float, report: StepReport) -> bool:
         solver = self.solver

@@ -51,6 +51,8 @@ from h2o_slam.core.spd import SPDFactor, upper
 
 #: ``restart(weights) -> (R, t)``: a start for the solve with these edge weights.
 Restart = Callable[[Array], tuple[Array, Array]]
+#: ``split(B) -> (Y, Z)`` with ``Yᵀ Z = Bᵀ H⁻¹ B`` (:meth:`SPDFactor.split_solve`).
+Split = Callable[[Array], tuple[Array, Array]]
 
 
 
@@ -732,7 +734,7 @@ def group_chi2(solver: H2OSolver, groups: list[np.ndarray], chunk: int = 128,
 
 
 def _batch_chi2(r: Array, J: Array, var: np.ndarray, rows: list[np.ndarray], size: int,
-                solve: Callable[[Array], Array] | None, unknowns: int, sign: float) -> Array:
+                solve: Split | None, unknowns: int, sign: float) -> Array:
     """:func:`group_chi2` of groups of at most ``size`` edges (``rows`` of ``r``, ``J``,
     ``var``): each group a super-edge, its edges' Jacobians block-diagonal, padding zero."""
     p = r.shape[1]
@@ -756,10 +758,11 @@ def _batch_chi2(r: Array, J: Array, var: np.ndarray, rows: list[np.ndarray], siz
 
 
 def _whitened(solver: H2OSolver, edges: np.ndarray
-              ) -> tuple[Array, Array, np.ndarray, Callable[[Array], Array] | None, int]:
+              ) -> tuple[Array, Array, np.ndarray, Split | None, int]:
     """Whitened residuals (e × p) and Jacobians on both ends (e × p × 2p) of ``edges``, the
-    unknown of each Jacobian column (-1 where the system holds the end), and a solve with
-    the weighted Gauss–Newton matrix ``H`` (``None`` without unknowns) of its size."""
+    unknown of each Jacobian column (-1 where the system holds the end), and the split
+    solve (:meth:`~h2o_slam.core.spd.SPDFactor.split_solve`) with the weighted
+    Gauss–Newton matrix ``H`` (``None`` without unknowns) of its size."""
     H, _, free_nodes = ExactSystem(solver).normal_equations()
     p, dof = solver.p, solver.dof
     R, x = solver.world_poses()
@@ -783,27 +786,23 @@ def _whitened(solver: H2OSolver, edges: np.ndarray
         return r, J, var, None, 0
     U = upper(H)
     factor = SPDFactor(U.indptr, U.indices)
-    return r, J, var, lambda E: factor.solve(U.data, E), H.shape[0]
+    return r, J, var, lambda B: factor.split_solve(U.data, B), H.shape[0]
 
 
-def _map_term(solve: Callable[[Array], Array], J: Array, var: np.ndarray, size: int) -> Array:
-    """``J Σ Jᵀ`` per edge, ``Σ`` the rows and columns ``var`` of ``H⁻¹`` (-1: held, 0)."""
-    k, q = var.shape
-    used = var >= 0
-    cols = np.flatnonzero(used.ravel())
-    E = np.zeros((size, len(cols)))
-    E[var.ravel()[cols], np.arange(len(cols))] = 1.0
-    X = solve(E)  # columns of H⁻¹
-    out = np.empty((k, J.shape[1], J.shape[1]))
-    col_of = np.full(k * q, -1, dtype=np.int64)
-    col_of[cols] = np.arange(len(cols))
-    for i in range(k):
-        c = col_of[i * q: (i + 1) * q]
-        sel = c >= 0
-        Sig = np.zeros((q, q))
-        Sig[np.ix_(sel, sel)] = X[var[i][sel]][:, c[sel]]
-        out[i] = J[i] @ Sig @ J[i].T
-    return out
+def _map_term(split: Split, J: Array, var: np.ndarray, size: int) -> Array:
+    """``J Σ Jᵀ`` per edge, ``Σ = H⁻¹`` over the unknowns ``var`` of ``J``'s columns (-1:
+    held, 0): the quadratic forms of ``Jᵀ``'s columns scattered into the unknowns, by
+    ``split`` (:meth:`~h2o_slam.core.spd.SPDFactor.split_solve`). A quarter of the work of
+    solving for the ``2p`` columns of ``H⁻¹`` at each edge's ends: ``p`` columns, half a
+    solve each (city10000 with 1,000 false closures out: 86 % of a robust solve)."""
+    k, rows, _ = J.shape
+    e, u = np.nonzero(var >= 0)
+    B = np.zeros((size, k * rows))
+    for j in range(rows):
+        # add: two edges of a group may share an end
+        np.add.at(B, (var[e, u], e * rows + j), J[e, j, u])
+    Y, Z = split(B)
+    return np.einsum("nki,nkj->kij", Y.reshape(size, k, rows), Z.reshape(size, k, rows))
 
 
 def _binary(w: Array) -> bool:

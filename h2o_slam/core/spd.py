@@ -123,6 +123,28 @@ class SPDFactor:
                 self._backend = None  # a failed factorization is not reused
         return self._splu(data, rhs)
 
+    def split_solve(self, data: Array, rhs: Array) -> tuple[Array, Array]:
+        """``(Y, Z)`` with ``Yᵀ Z = rhsᵀ A⁻¹ rhs`` for the matrix ``A`` with values ``data``:
+        with CHOLMOD's factor ``A = Pᵀ L D Lᵀ P``, ``Y = L⁻¹ P rhs`` and ``Z = D⁻¹ Y``, half
+        the triangular solves of :meth:`solve` (the quadratic forms of many right-hand sides
+        at once: :func:`~h2o_slam.core.robust.innovation_chi2`); else ``rhs`` and
+        ``A⁻¹ rhs``.
+
+        Raises:
+            numpy.linalg.LinAlgError: as :meth:`solve`.
+        """
+        if self.method == "cholmod" and self.n:
+            try:
+                if self._backend is None:
+                    self._backend = _Cholmod(self.indptr, self.indices)
+                assert isinstance(self._backend, _Cholmod)
+                Y, Z = self._backend.split_solve(data, rhs)
+                if np.all(np.isfinite(Z)):
+                    return Y, Z
+            except (ArithmeticError, ValueError, RuntimeError):
+                self._backend = None
+        return np.asarray(rhs, dtype=float), self.solve(data, rhs)
+
     def _factored(self, data: Array, rhs: Array) -> Array:
         if self._backend is None:
             cls = _Cholmod if self.method == "cholmod" else _QDLDL
@@ -165,6 +187,24 @@ class _Cholmod:
         self._F: Any = None
 
     def solve(self, data: Array, rhs: Array) -> Array:
+        self._numeric(data)
+        x = self._cvxopt.matrix(np.array(rhs, dtype=float))
+        self._cholmod.solve(self._F, x)
+        return np.array(x, dtype=float).reshape(np.shape(rhs))
+
+    def split_solve(self, data: Array, rhs: Array) -> tuple[Array, Array]:
+        """``(L⁻¹ P rhs, D⁻¹ L⁻¹ P rhs)`` (:meth:`SPDFactor.split_solve`)."""
+        self._numeric(data)
+        y = self._cvxopt.matrix(np.array(rhs, dtype=float))
+        for system in (7, 4):  # cvxopt's sys: 7 applies P, 4 solves with L, 6 with D
+            self._cholmod.solve(self._F, y, sys=system)
+        z = self._cvxopt.matrix(y)
+        self._cholmod.solve(self._F, z, sys=6)
+        shape = np.shape(rhs)
+        return (np.array(y, dtype=float).reshape(shape),
+                np.array(z, dtype=float).reshape(shape))
+
+    def _numeric(self, data: Array) -> None:
         cvxopt, cholmod = self._cvxopt, self._cholmod
         # cvxopt keeps triplets in column-major order with sorted rows: the CSC order.
         self._A.V = cvxopt.matrix(np.asarray(data, dtype=float))
@@ -183,9 +223,6 @@ class _Cholmod:
                 del options["supernodal"]
             else:
                 options["supernodal"] = saved
-        x = cvxopt.matrix(np.array(rhs, dtype=float))
-        cholmod.solve(self._F, x)
-        return np.array(x, dtype=float).reshape(np.shape(rhs))
 
 
 class _QDLDL:

@@ -9,7 +9,7 @@ from graphs import random_graph
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.exact import ExactSystem, converge_exact
-from h2o_slam.core.graph import EARTH, chi2
+from h2o_slam.core.graph import EARTH, PoseGraph, chi2
 from h2o_slam.core.jacobians import endpoint_jacobians
 from h2o_slam.core.modes import build_solver
 from h2o_slam.core.solver import SolverConfig
@@ -96,3 +96,32 @@ def test_exact_mode_converges_to_a_lower_chi2_than_it_starts_from():
     history, converged = converge_exact(solver, 50)
     assert converged and history[-1] < 0.5 * history[0]
     assert np.all(np.diff(history) <= 1e-9 * history[0])
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_edges_at_weight_zero_leave_the_pattern_and_the_solve_unchanged(planar):
+    """A dropped closure adds no block to ``H`` (a false one between distant poses would
+    add fill), and the solve is that of the graph without it."""
+    graph = random_graph(11, planar, n=40, loops=16)
+    closures = np.flatnonzero(np.abs(graph.a - graph.b) > 1)
+    dropped = closures[::2]
+    solver, _ = build_solver(graph, UNCAPPED)
+    weights = np.ones(graph.num_edges)
+    weights[dropped] = 0.0
+    solver.set_weights(weights)
+    kept = np.setdiff1d(np.arange(graph.num_edges), dropped)
+    without = _without(graph, kept)
+    alone, _ = build_solver(without.with_estimate(*solver.world_poses()), UNCAPPED,
+                            init="input")
+    full = ExactSystem(solver).system()
+    assert full.nnz == ExactSystem(alone).system().nnz
+    history, _ = converge_exact(solver, 30)
+    expected, _ = converge_exact(alone, 30)
+    np.testing.assert_allclose(history, expected, rtol=1e-9)
+    np.testing.assert_allclose(solver.world_poses()[1], alone.world_poses()[1], atol=1e-9)
+
+
+def _without(graph, keep):
+    return PoseGraph(graph.planar, graph.ids, graph.R, graph.t, graph.kind[keep],
+                     graph.a[keep], graph.b[keep], graph.meas_R[keep], graph.meas_t[keep],
+                     graph.info[keep])

@@ -3,6 +3,10 @@ finite differences."""
 
 from __future__ import annotations
 
+import itertools
+import math
+import time
+
 import numpy as np
 import pytest
 from graphs import loop_graph, random_graph
@@ -11,8 +15,14 @@ from hypothesis import strategies as st
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.graph import chi2, edge_chi2
-from h2o_slam.core.loop_spread import adjoint, closure_error, planar_edge_chi2, spread_loop
-from h2o_slam.core.modes import solve_exact
+from h2o_slam.core.loop_spread import (
+    LoopSolve,
+    adjoint,
+    closure_error,
+    planar_edge_chi2,
+    spread_loop,
+)
+from h2o_slam.core.modes import build_solver, solve_exact
 
 
 @pytest.mark.parametrize("planar", [True, False])
@@ -66,3 +76,50 @@ def test_planar_edge_chi2_is_edge_chi2(seed: int) -> None:
     g = random_graph(seed, True, n=12, loops=6, noise=0.3)
     edges = np.arange(g.num_edges)
     np.testing.assert_allclose(planar_edge_chi2(g, edges, g.R, g.t), edge_chi2(g), rtol=1e-9)
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_the_loop_solve_is_gauss_newton_on_the_newer_poses(planar: bool) -> None:
+    """With the closure's older end at node 0 every other pose is newer: the loop solve is
+    then the whole graph's exact solve (node 0 holds the gauge in both)."""
+    g = loop_graph(5, planar, 120, reverse=True, closures=((80, 10), (110, 50)))
+    solver, _ = build_solver(g, init="input", regularizer=False)
+    loop = LoopSolve()
+    free, edges = loop.problem(solver, 0)
+    np.testing.assert_array_equal(free, np.arange(1, g.num_nodes))
+    assert len(edges) == g.num_edges
+    kept, converged = loop.run(solver, free, edges, math.inf, time.perf_counter, 1.0)
+    assert kept
+    for _ in range(5):  # LOOP_ITERATIONS at a time
+        if converged:
+            break
+        _, converged = loop.run(solver, free, edges, math.inf, time.perf_counter, 1.0)
+    assert converged
+    assert solver.chi2(g) <= 1.0001 * solve_exact(g).chi2_final
+
+
+def test_a_loop_solve_cut_short_goes_on_from_the_poses_it_reached() -> None:
+    """Out of time after two iterations, the map keeps what they gained (χ² fell); the next
+    calls go on from there to the optimum. Poses older than the closure's end stay."""
+    g = loop_graph(5, True, 120, reverse=True, closures=((80, 10), (110, 50)))
+    solver, _ = build_solver(g, init="input", regularizer=False)
+    loop = LoopSolve()
+    free, edges = loop.problem(solver, 10)
+    ticks = itertools.count()
+
+    def clock() -> float:  # each reading a millisecond later
+        return 1e-3 * next(ticks)
+
+    start = solver.chi2(g)
+    old = solver.world_poses()[1][:11].copy()
+    kept, converged = loop.run(solver, free, edges, clock() + 4e-3, clock, 1.0)
+    assert kept and not converged
+    assert solver.chi2(g) < start
+    for _ in range(20):
+        if converged:
+            break
+        kept, converged = loop.run(solver, free, edges, clock() + 1.0, clock, 1.0)
+    assert converged
+    np.testing.assert_allclose(solver.world_poses()[1][:11], old, atol=1e-9)
+    # The optimum with nodes 0-10 held where dead reckoning put them.
+    assert solver.chi2(g) < 0.01 * start

@@ -63,10 +63,11 @@ def test_online_mode_times_every_pose_and_ends_near_the_optimum(city):
     result = solve_online(city, passes=5)
     assert len(result.per_callback_ms) == city.num_nodes
     assert len(result.chi2_per_pass) == 6
-    # Without tree balancing (a later issue) the online tree is the odometry chain, whose
-    # long paths slow the passes down; they must still make steady progress.
-    assert result.chi2_final < result.chi2_per_pass[0]
+    # The thesis' passes settle at a fixed point of their own (here 1.4 times the optimum,
+    # above the 1.06 the stream's loop solves left): the run ends on the best map it saw.
     assert result.chi2_final < 4.0 * optimum
+    assert chi2(city, result.R, result.t) == pytest.approx(min(result.chi2_per_pass),
+                                                           rel=1e-9)
 
 
 def test_arrivals_group_edges_by_their_newest_pose(city):

@@ -36,6 +36,19 @@ def test_solves_equal_scipy(method, seed):
 
 
 @pytest.mark.parametrize("method", BACKENDS)
+@pytest.mark.parametrize("seed", [0, 1])
+def test_split_solves_give_the_quadratic_forms_of_the_inverse(method, seed):
+    """``Yᵀ Z = Bᵀ H⁻¹ B`` for several right-hand sides, whatever factor the backend keeps
+    (CHOLMOD's simplicial LDLᵀ or supernodal LLᵀ: both orders of density)."""
+    H = random_spd(seed, density=0.05 if seed == 0 else 0.3)
+    B = np.random.default_rng(seed + 20).standard_normal((H.shape[0], 7))
+    U = upper(H)
+    Y, Z = SPDFactor(U.indptr, U.indices, method).split_solve(U.data, B)
+    expected = B.T @ np.linalg.solve(H.toarray(), B)
+    np.testing.assert_allclose(Y.T @ Z, expected, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("method", BACKENDS)
 def test_refactorization_with_the_kept_pattern_equals_a_fresh_one(method):
     H = random_spd(3)
     U = upper(H)
