@@ -781,13 +781,31 @@ class OnlineH2O:
         if float(r @ r) < SPREAD_MIN_CHI2:
             return True  # the tree path's update is enough
         if self.online.solve_loops:
-            loop = self.loop_solve
-            free, edges = loop.problem(solver, lo)
-            if loop.fits(len(free) + len(edges), deadline, self._clock, self.online.safety):
-                kept, converged = loop.run(solver, free, edges, deadline, self._clock,
-                                           self.online.safety)
-                self._count_spread(edge, kept, "solved")
-                return converged  # else it goes on in the next step, from the poses reached
+            solved = self._solve_loop(edge, lo, deadline)
+            if solved is not None:
+                return solved
+        return self._spread_chain(edge, lo, hi, deadline)
+
+    def _solve_loop(self, edge: int, lo: int, deadline: float) -> bool | None:
+        """The loop solve of ``edge`` if it fits (``None`` if not); whether it converged
+        (else it goes on in the next step, from the poses it reached)."""
+        solver, loop = self.solver, self.loop_solve
+        clock, safety = self._clock, self.online.safety
+        # The newer poses and their odometry bound the work from below: a long loop on a
+        # large map is refused before its edges are gathered.
+        if not loop.fits(2 * (solver.num_nodes - lo - 1), deadline, clock, safety):
+            return None
+        free, edges = loop.problem(solver, lo)
+        if not loop.fits(len(free) + len(edges), deadline, clock, safety):
+            return None
+        kept, converged = loop.run(solver, free, edges, deadline, clock, safety)
+        self._count_spread(edge, kept, "solved")
+        return converged
+
+    def _spread_chain(self, edge: int, lo: int, hi: int, deadline: float) -> bool:
+        """The spread of ``edge`` along its odometry chain (see :meth:`_spread`)."""
+        solver = self.solver
+        a, b = int(solver.a[edge]), int(solver.b[edge])
         chain = self._odometry_edge[lo + 1: hi + 1]
         if len(chain) < hi - lo or np.any(chain < 0):
             return True
