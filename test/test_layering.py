@@ -1,7 +1,9 @@
-"""Layering (doc/design.md, Layering): h2o_slam is core < io < ros < app, and imports only
-run downward.
+"""Layering (doc/design.md, Layering): h2o_slam is core < io < ros < app, with the
+baselines beside io on the core, and imports only run downward.
 
 * ``h2o_slam.core`` — the solver mathematics: no file formats, no rclpy, no plotting.
+* ``h2o_slam.baselines`` — what the benchmarks compare against (TORO, covariance variants,
+  other tools' χ²), over the core alone; only ``app`` (``h2o-solve``) imports it.
 * ``h2o_slam.io`` — files and bags, over the core (rclpy only inside the bag writer).
 * ``h2o_slam.ros`` — the node and its rclpy-free mapper, over io and core.
 * ``h2o_slam.app`` — replay and the commands: the only part of h2o_slam that may import
@@ -23,10 +25,19 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-LAYERS = ("core", "io", "ros", "app")
+#: The layers of h2o_slam, and those each may import (its own included).
+MAY_IMPORT = {
+    "core": ("core",),
+    "baselines": ("core", "baselines"),
+    "io": ("core", "io"),
+    "ros": ("core", "io", "ros"),
+    "app": ("core", "baselines", "io", "ros", "app"),
+}
+LAYERS = tuple(MAY_IMPORT)
 #: Outside packages each part may import (beyond the standard library and numerical stack).
 FORBIDDEN_EXTERNAL = {
     "core": ("rclpy", "rosbags", "matplotlib", "yaml", "msg_adapters", "hybrid_vo"),
+    "baselines": ("rclpy", "rosbags", "matplotlib", "yaml", "msg_adapters", "hybrid_vo"),
     "io": ("msg_adapters", "hybrid_vo"),
     "ros": ("hybrid_vo",),
     "app": (),
@@ -74,7 +85,7 @@ def violations(module: str, source: str) -> list[str]:
         root = name.split(".")[0]
         target = _layer(name)
         if own is not None:
-            if target is not None and LAYERS.index(target) > LAYERS.index(own):
+            if target is not None and target not in MAY_IMPORT[own]:
                 found.append(f"{module} ({own}) imports {name} ({target})")
             if root in FORBIDDEN_EXTERNAL[own]:
                 found.append(f"{module} ({own}) imports {name}")
@@ -86,7 +97,7 @@ def violations(module: str, source: str) -> list[str]:
 
 def test_every_h2o_slam_module_is_in_a_layer() -> None:
     loose = [m for m, _ in _modules("h2o_slam") if m != "h2o_slam" and _layer(m) is None]
-    assert not loose, f"modules outside core/io/ros/app: {loose}"
+    assert not loose, f"modules outside {'/'.join(LAYERS)}: {loose}"
     assert {_layer(m) for m, _ in _modules("h2o_slam")} >= set(LAYERS)
 
 
@@ -103,6 +114,10 @@ def test_imports_run_downward(package: str) -> None:
         ("h2o_slam.core.solver", "from h2o_slam.io.g2o import read_g2o"),
         ("h2o_slam.core.solver", "def f():\n    import rclpy"),
         ("h2o_slam.core.tree", "from h2o_slam import ros"),
+        ("h2o_slam.core.graph", "from h2o_slam.baselines.chi2_metrics import all_chi2"),
+        ("h2o_slam.core.modes", "def f():\n    from ..baselines import toro"),
+        ("h2o_slam.baselines.toro", "from h2o_slam.io.g2o import read_g2o"),
+        ("h2o_slam.io.g2o", "from h2o_slam.baselines import toro"),
         ("h2o_slam.io.g2o", "from ..ros import mapper"),
         ("h2o_slam.ros.mapper", "from hybrid_vo import world"),
         ("msg_adapters.gps", "from h2o_slam.io.map_store import load_map"),
@@ -116,6 +131,8 @@ def test_an_upward_import_is_reported(module: str, source: str) -> None:
 def test_a_downward_import_passes() -> None:
     source = "from h2o_slam.core import geometry\nfrom ..io.g2o import read_g2o\nimport hybrid_vo"
     assert violations("h2o_slam.app.replay", source) == []
+    assert violations("h2o_slam.app.cli.solve", "from h2o_slam.baselines import toro") == []
+    assert violations("h2o_slam.baselines.toro", "from ..core.modes import tree_estimate") == []
 
 
 # Imports each module named on the command line in a fresh interpreter, in turn, and prints
@@ -141,10 +158,12 @@ def _loads_nothing_of(modules: list[str], forbidden: list[str]) -> None:
     assert not proc.stdout.strip(), f"importing {proc.stdout.strip()} (loaded)"
 
 
-def test_the_core_loads_no_rclpy_files_or_plotting() -> None:
-    core = [m for m, _ in _modules("h2o_slam") if _layer(m) == "core"]
-    _loads_nothing_of(core, ["rclpy", "rosbags", "matplotlib", "h2o_slam.io", "h2o_slam.ros",
-                             "h2o_slam.app", "msg_adapters", "hybrid_vo"])
+@pytest.mark.parametrize("layer", ["core", "baselines"])
+def test_the_core_and_the_baselines_load_no_rclpy_files_or_plotting(layer: str) -> None:
+    modules = [m for m, _ in _modules("h2o_slam") if _layer(m) == layer]
+    above = [f"h2o_slam.{other}" for other in LAYERS if other not in MAY_IMPORT[layer]]
+    _loads_nothing_of(modules, ["rclpy", "rosbags", "matplotlib", *above, "msg_adapters",
+                                "hybrid_vo"])
 
 
 def test_io_and_the_rclpy_free_cores_load_no_rclpy() -> None:

@@ -171,6 +171,24 @@ def test_sourced_install_space_imports_installed_copy(
     assert Path(proc.stdout.strip()).is_relative_to(colcon_build.prefix), proc.stdout
 
 
+def test_installed_copy_has_every_sub_package(
+    colcon_build: ColconBuild, sourced_env: dict[str, str]
+) -> None:
+    """setup.py's ``find_packages`` installs every folder with an ``__init__.py``, a new
+    sub-package too: each imports from the install space, not from the source tree."""
+    packages = sorted(".".join(init.parent.relative_to(REPO).parts)
+                      for top in ("h2o_slam", "hybrid_vo", "msg_adapters")
+                      for init in (REPO / top).rglob("__init__.py"))
+    code = ("import importlib, sys\n"
+            "for name in sys.argv[1:]:\n"
+            "    print(importlib.import_module(name).__file__)")
+    proc = _run([sys.executable, "-c", code, *packages], env=sourced_env,
+                cwd=colcon_build.root, timeout=RUN_TIMEOUT_S)
+    assert proc.returncode == 0, proc.stderr
+    outside = [f for f in proc.stdout.split() if not Path(f).is_relative_to(colcon_build.prefix)]
+    assert len(proc.stdout.split()) == len(packages) and not outside, proc.stdout
+
+
 @pytest.mark.parametrize("executable", EXECUTABLES)
 def test_ros2_run_finds_and_runs_executable(
     colcon_build: ColconBuild,

@@ -4,7 +4,7 @@ data sets, each in three covariance variants (I, P_s, P_f).
 Solvers, as the paper's columns: LAGO for structured covariance (the 2012 approximation,
 ``lago(covariance="structured")``), LAGO for unstructured covariance (ours, the default
 ``lago``), Gauss–Newton (our exact mode from the graph's own estimate, and GTSAM's
-Gauss–Newton beside it), TORO (``h2o_slam.core.toro`` when present) and g2o (the ``g2opy``
+Gauss–Newton beside it), TORO (``h2o_slam.baselines.toro`` when present) and g2o (the ``g2opy``
 wheel with the settings of g2o's command-line tool: Gauss–Newton, 5 iterations, the
 estimate in the file, first vertex fixed). The objective is the paper's cost (3), which
 is the project's χ² (:func:`h2o_slam.core.graph.chi2`) of the variant's graph.
@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from results_md import command
 
-from h2o_slam.core import covariance_variants as cv
+from h2o_slam.baselines import covariance_variants as cv
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.graph import PoseGraph, chi2
 from h2o_slam.core.lago import lago
@@ -193,11 +193,11 @@ def run_g2o(graph: PoseGraph) -> Cell:
 
 
 def toro_runner() -> Callable[[PoseGraph], Cell] | None:
-    """A runner over ``h2o_slam.core.toro`` (a colleague's module) when it is there, else ``None``:
-    its defaults, as the released code's (100 iterations from the tree initialization);
+    """A runner over ``h2o_slam.baselines.toro`` (a colleague's module) when it is there, else
+    ``None``: its defaults, as the released code's (100 iterations from the tree initialization);
     the time is TORO's own (tree, start and iterations; χ² evaluations excluded)."""
     try:
-        toro = importlib.import_module("h2o_slam.core.toro")
+        toro = importlib.import_module("h2o_slam.baselines.toro")
     except ModuleNotFoundError:
         return None
 
@@ -225,7 +225,7 @@ def run_case(dataset: str, variant: str, graph: PoseGraph, repeats: int,
     case.cells["gn"] = _safe(lambda: run_exact(gv))
     case.cells["gn_gtsam"] = _safe(lambda: run_gtsam_gn(gv))
     case.cells["toro"] = (_safe(lambda: toro(gv)) if toro is not None
-                          else Cell(note="pending (h2o_slam/core/toro.py not there yet)"))
+                          else Cell(note="pending (h2o_slam/baselines/toro.py not there yet)"))
     case.cells["g2o"] = _safe(lambda: run_g2o(gv))
     return case
 
@@ -479,7 +479,7 @@ Protocol and its differences from the paper's:
   INTEL here is `intel.g2o` (1728 nodes, 2512 edges, full information), not the paper's own
   scan-matched INTEL, so its P_s rows differ in kind. M10000 is stood in for by `city10000`
   (10000 nodes, 20687 edges; the paper's M10000 has 64311 edges). FR079 is not available.
-- **Variants** (`h2o_slam/core/covariance_variants.py`): I = identity covariance; P_s = the
+- **Variants** (`h2o_slam/baselines/covariance_variants.py`): I = identity covariance; P_s = the
   file's covariance with position–yaw cross terms removed (the paper gives no values; for
   CSAIL, M3500 and city10000 this is the file itself); P_f = the odometry model
   (rotation γ_r1, translation γ_t, rotation γ_r2 with σ = 0.05 rad, 0.05 m, 0.01 rad, as
@@ -492,7 +492,7 @@ Protocol and its differences from the paper's:
   relative χ² decrease of 1e-10 with Levenberg damping when χ² would rise (the paper's GN
   stops when the correction's norm is below 0.1); GTSAM's Gauss–Newton from the same start
   is beside it. g2o: the `g2opy` wheel (2.3.0: current g2o code, not the 2011 release),
-  Gauss–Newton, 5 iterations, Eigen's sparse Cholesky. TORO: `h2o_slam/core/toro.py` (a
+  Gauss–Newton, 5 iterations, Eigen's sparse Cholesky. TORO: `h2o_slam/baselines/toro.py` (a
   colleague's implementation) when present.
 - **Times** are wall seconds in one Python process on this machine (2 cores): LAGO the
   median of {repeats} runs, the others one run; the paper's are C++ on an i7 3.4 GHz

@@ -11,7 +11,7 @@ Paris are Google's and not public: the public graphs stand in (see the section).
 H₂O is :class:`h2o_slam.core.solver.H2OSolver` run as the paper's Algorithm 1
 (:func:`h2o_slam.core.modes.offline_pass`: breadth-first tree, edges by root depth, τ ← 0.99 τ
 per pass, rotation steps capped at π/8), each ``relax`` call timed on its own. TORO is
-:func:`h2o_slam.core.toro.solve_toro` (a colleague's implementation of Grisetti et al. 2007).
+:func:`h2o_slam.baselines.toro.solve_toro` (a colleague's implementation of Grisetti et al. 2007).
 Energy is the paper's (1)–(2), ``Σ (f − k)ᵀ S (f − k)`` = :func:`h2o_slam.core.graph.chi2`,
 divided by the number of constraints.
 """
@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from results_md import command
 
-from h2o_slam.core.covariance_variants import with_variant
+from h2o_slam.baselines.covariance_variants import with_variant
 from h2o_slam.core.graph import EdgeKind, PoseGraph, chi2
 from h2o_slam.core.modes import build_solver, offline_order, solve_exact, solve_offline
 from h2o_slam.io.g2o import read_g2o
@@ -123,7 +123,7 @@ def run_h2o(graph: PoseGraph, d_max: int | None, passes: int) -> tuple[Run, list
 
 
 def run_toro(graph: PoseGraph, iterations: int) -> Run:
-    from h2o_slam.core.toro import solve_toro
+    from h2o_slam.baselines.toro import solve_toro
 
     out, history = solve_toro(graph, iterations=iterations)
     m = graph.num_edges
@@ -215,8 +215,8 @@ def gps_experiment(passes: int, poses: int) -> GpsResult:
     """The paper's GPS claim on a synthetic Manhattan world (no public graph has GPS):
     H₂O offline at D_max=200 with GPS edges in batches of 30, against the exact optimum;
     TORO is offered the same graph."""
+    from h2o_slam.baselines.toro import solve_toro
     from h2o_slam.core.errors import InputError
-    from h2o_slam.core.toro import solve_toro
     from h2o_slam.io.synthetic import manhattan
 
     graph = manhattan(poses, seed=7, gps_every=GPS_EVERY).graph
@@ -392,7 +392,7 @@ Protocol and its differences from the paper's:
   its energies are on another scale than the paper's 1.596 / 2.062. kitti_00 stands in for
   Valencia (an urban drive with few loop closures and long paths){city}.
 - **Solvers.** H₂O: the paper's Algorithm 1 from the tree initialization, {passes} passes,
-  τ₀ = 1 decaying 0.99 per pass, no GPS edges (as Fig. 5). TORO: `h2o_slam/core/toro.py` (a
+  τ₀ = 1 decaying 0.99 per pass, no GPS edges (as Fig. 5). TORO: `h2o_slam/baselines/toro.py` (a
   colleague's Python/numba implementation of Grisetti et al. 2007, not Google's C++ TORO the
   paper ran), {toro} iterations from the same tree initialization.
 - **Times.** Wall seconds of the solver alone (χ² evaluation excluded), one process, this

@@ -8,10 +8,10 @@ import time
 
 import numpy as np
 
+from h2o_slam.baselines.toro import solve_toro
 from h2o_slam.core.graph import PoseGraph
 from h2o_slam.core.modes import solve_exact, solve_online
 from h2o_slam.core.online import OnlineConfig
-from h2o_slam.core.toro import solve_toro
 from h2o_slam.core.warmup import warm_up
 from h2o_slam.io.g2o import read_g2o
 from h2o_slam.io.synthetic import grid3d, manhattan
@@ -197,9 +197,9 @@ def _report(ctx: Context, passes: int, toro_iterations: int, parts: list[str],
         f"start too); H₂O offline runs {passes} passes at τ₀ = 1 (×0.99 a pass), edges by "
         "root depth; online H₂O feeds the poses one by one (dynamic balancing, D_max = 200, "
         f"no background exact solves), then {passes - 1} offline passes; TORO "
-        f"(`h2o_slam/core/toro.py`) runs {toro_iterations} iterations (3-D: see below). Energy "
-        "= χ² = Σ eᵀΩe (`h2o_slam.core.graph.chi2`) over the number of edges; time = solver "
-        "time only (set-up included, χ² evaluation excluded); each point is one loop "
+        f"(`h2o_slam/baselines/toro.py`) runs {toro_iterations} iterations (3-D: see below). "
+        "Energy = χ² = Σ eᵀΩe (`h2o_slam.core.graph.chi2`) over the number of edges; time = "
+        "solver time only (set-up included, χ² evaluation excluded); each point is one loop "
         "through all edges. The exact optimum (this package's Gauss–Newton) is the dotted "
         "line.\n",
         "Differences: Valencia and Paris are not public, so the Valencia figure is re-run on "
@@ -209,9 +209,9 @@ def _report(ctx: Context, passes: int, toro_iterations: int, parts: list[str],
         "variant: its optimum χ² 3 549 matches Carlone's Table 1 Gauss–Newton 3.55E+03), "
         "where the thesis' copy has 5 598 edges and its own weights, so per-constraint "
         "values are not comparable across copies in absolute terms — only the ordering and "
-        "ratios are. TORO is our re-implementation (`h2o_slam/core/toro.py`: the RSS 2007 method "
-        "on planar graphs, its IROS 2007 3-D extension on sphere2500, 300 iterations there), "
-        "checked against Carlone's Table 1 below.\n",
+        "ratios are. TORO is our re-implementation (`h2o_slam/baselines/toro.py`: the RSS 2007 "
+        "method on planar graphs, its IROS 2007 3-D extension on sphere2500, 300 iterations "
+        "there), checked against Carlone's Table 1 below.\n",
     ]
     if missing:
         out.append(f"Missing graphs (skipped): {', '.join(missing)}.\n")

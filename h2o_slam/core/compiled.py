@@ -61,12 +61,15 @@ class _ContentLocator(caching.UserProvidedCacheLocator):
 
     @classmethod
     def from_function(cls, py_func: Any, py_file: str) -> Any:
-        if not _CONFIG.CACHE_DIR or Path(py_file).resolve().parent != _HERE:
+        if not _CONFIG.CACHE_DIR or Path(py_file).resolve().parent not in _KERNEL_FOLDERS:
             return None
         return super().from_function(py_func, py_file)
 
 
 _HERE = Path(__file__).resolve().parent
+#: The folders whose kernels are cached by content: the core's, and the baselines' (TORO),
+#: which use this decorator too.
+_KERNEL_FOLDERS = (_HERE, _HERE.parent / "baselines")
 _CONFIG: Any = numba.config
 # Older numba names the class _CacheImpl; without either, numba's own locators serve.
 _LOCATORS: Any = getattr(caching, "CacheImpl", None) or getattr(caching, "_CacheImpl", None)

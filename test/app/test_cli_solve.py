@@ -11,7 +11,7 @@ import pytest
 
 from h2o_slam.app.cli.common import ProgressLine
 from h2o_slam.app.cli.solve import main
-from h2o_slam.core.chi2_metrics import METRICS, all_chi2
+from h2o_slam.baselines.chi2_metrics import METRICS, all_chi2
 from h2o_slam.core.graph import chi2
 from h2o_slam.io.g2o import read_g2o, write_g2o
 from h2o_slam.io.synthetic import grid3d, manhattan

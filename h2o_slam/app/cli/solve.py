@@ -33,7 +33,7 @@ from h2o_slam.app.cli.common import (
     unwritable_file,
     usage_error,
 )
-from h2o_slam.core.chi2_metrics import METRICS, all_chi2
+from h2o_slam.baselines.chi2_metrics import METRICS, all_chi2
 from h2o_slam.core.errors import H2OError, InputError
 from h2o_slam.core.graph import PoseGraph, edge_chi2
 from h2o_slam.core.modes import (
@@ -197,7 +197,7 @@ def solve_file(
     """Read ``input_path``, solve it as ``options`` say, write the solution to ``output_path``.
 
     The report's ``chi2_initial``, ``chi2_final`` and ``chi2_per_pass`` are in ``metric``
-    (see :mod:`h2o_slam.core.chi2_metrics`; the solvers minimize ``h2o``); ``chi2_metrics``
+    (see :mod:`h2o_slam.baselines.chi2_metrics`; the solvers minimize ``h2o``); ``chi2_metrics``
     carries the initial and final χ² in all three. ``progress(step, chi2)`` is called after
     each offline pass. ``solving`` is entered for the solve alone (the span of ``wall_s``):
     a progress line there does not count reading, warming up or writing.

@@ -1,4 +1,4 @@
-"""χ² as GTSAM and g2o compute it (h2o_slam.core.chi2_metrics): hand-derived single edges, and
+"""χ² as GTSAM and g2o compute it (h2o_slam.baselines.chi2_metrics): hand-derived single edges, and
 GTSAM's own factors where the bench requirements (the gtsam wheel) are installed."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
+from h2o_slam.baselines.chi2_metrics import METRICS, all_chi2, chi2_as
 from h2o_slam.core import geometry as geo
-from h2o_slam.core.chi2_metrics import METRICS, all_chi2, chi2_as
 from h2o_slam.core.graph import EdgeKind, PoseGraph, chi2, make_graph
 from h2o_slam.io.synthetic import grid3d, manhattan
 

@@ -1,4 +1,4 @@
-"""TORO baseline (h2o_slam.core.toro), planar and 3-D: monotone χ² on a small loop at its own
+"""TORO baseline (h2o_slam.baselines.toro), planar and 3-D: monotone χ² on a small loop at its own
 learning rate, near the exact optimum on synthetic graphs, its tree parameterization and its
 error paths."""
 
@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from h2o_slam.baselines.toro import ToroProblem, ToroProblem3, solve_toro
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.errors import InputError
 from h2o_slam.core.graph import EARTH, PoseGraph, chi2, make_graph
 from h2o_slam.core.modes import build_solver, solve_exact
-from h2o_slam.core.toro import ToroProblem, ToroProblem3, solve_toro
 from h2o_slam.io.synthetic import grid3d, manhattan
 
 

@@ -9,7 +9,7 @@ relative edges only.
 
 API (what the benchmarks import)::
 
-    from h2o_slam.core.toro import solve_toro
+    from h2o_slam.baselines.toro import solve_toro
     graph_out, history = solve_toro(graph, iterations=100)
     history.chi2      # χ² (h2o_slam.core.graph.chi2) of the start, then after each iteration
     history.seconds   # cumulative wall time (s): tree and start, then after each iteration

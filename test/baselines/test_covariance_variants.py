@@ -9,7 +9,7 @@ from graphs import random_graph
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from h2o_slam.core import covariance_variants as cv
+from h2o_slam.baselines import covariance_variants as cv
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.errors import InputError
 from h2o_slam.core.graph import chi2
