@@ -204,9 +204,9 @@ def serve_publisher(namespace: str, laps: int, seed: int, speed: float, out: Pat
     from rclpy.node import Node
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-    from hybrid_vo import world
-    from hybrid_vo.world import STATUS_NO_FIX
-    from hybrid_vo.world_messages import drive_messages
+    from hybrid_vo.sim import world
+    from hybrid_vo.sim.messages import drive_messages
+    from hybrid_vo.sim.world import STATUS_NO_FIX
 
     drive = world.make_drive(drive_config(laps, seed))
     stream = [m for m in drive_messages(drive, wheel_rate_hz=rate_hz, with_images=False)
@@ -663,7 +663,7 @@ Notes:
   thread inside the node's process would share its GIL and inflate the very callback times
   being measured; on a robot the drivers are other processes too. The two cores are shared
   by all three (and by other work).
-- Feed: `hybrid_vo.world_messages.drive_messages(drive, wheel_rate_hz=50,
+- Feed: `hybrid_vo.sim.messages.drive_messages(drive, wheel_rate_hz=50,
   with_images=False)` of `h2o-demo`'s drive (`demo_drive(seed, laps)`: the slip square,
   36 s a lap, GPS σ 5 cm at 1 Hz with NO_FIX dropouts, loop closures on revisits), wheel
   odometry straight into the node's `odom` input; messages are built before the clock

@@ -3,7 +3,7 @@
     .venv/bin/python bench/replay.py [--laps N] [--seed N] [--output-dir DIR]
                                      [--results FILE] [--quick]
 
-The drive of ``h2o-demo`` (the slip square of :mod:`hybrid_vo.world`, 36 s a lap; 17 laps
+The drive of ``h2o-demo`` (the slip square of :mod:`hybrid_vo.sim.world`, 36 s a lap; 17 laps
 ≈ 10 minutes, ~6100 rendered stereo frames at 10 Hz, wheel odometry, GPS at 1 Hz, loop
 closures, ground truth) is written once as an MCAP bag under ``--output-dir`` and reused by
 later runs (rendering it takes minutes; the time is printed). The replay itself,
@@ -52,8 +52,8 @@ def record_bag(out_dir: Path, laps: int, seed: int) -> tuple[Path, dict[str, Any
     """
     from h2o_slam.app.cli.demo import demo_drive
     from h2o_slam.io.bag_writer import write_bag
-    from hybrid_vo import world
-    from hybrid_vo.world_messages import drive_messages
+    from hybrid_vo.sim import world
+    from hybrid_vo.sim.messages import drive_messages
 
     folder = out_dir / f"drive_{laps}laps_seed{seed}"
     bag, done = folder / "bag", folder / "record.json"

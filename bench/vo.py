@@ -1,6 +1,6 @@
 """Hybrid VO vs full stereo VO vs wheel odometry on simulated drives (thesis Table 2.1, Fig. 2.5).
 
-For each drive of :func:`hybrid_vo.world.scenario` rendered at a full resolution (640×480 by
+For each drive of :func:`hybrid_vo.sim.world.scenario` rendered at a full resolution (640×480 by
 default), the odometers process the same frames in the same run; each ``process`` call is
 timed with ``time.process_time``. The full VO is :class:`vo_full.CircularStereoVO` (of the
 VISO2-S kind); the earlier KLT baseline :class:`vo_full.FullStereoVO` runs beside it.
@@ -43,7 +43,7 @@ from vo_kitti import segment_drift  # noqa: E402
 
 from h2o_slam.core.trajectory_error import ate_m  # noqa: E402
 from hybrid_vo.odometer import HybridOdometer  # noqa: E402
-from hybrid_vo.world import (  # noqa: E402
+from hybrid_vo.sim.world import (  # noqa: E402
     integrate,
     make_drive,
     scenario,

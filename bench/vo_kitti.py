@@ -38,7 +38,7 @@ from h2o_slam.core.geometry import planar_between, wrap_angle  # noqa: E402
 from hybrid_vo.camera import CameraIntrinsics, CameraMounting  # noqa: E402
 from hybrid_vo.frames import StereoFrame  # noqa: E402
 from hybrid_vo.odometer import HybridOdometer, OdometerConfig  # noqa: E402
-from hybrid_vo.world import integrate  # noqa: E402
+from hybrid_vo.sim.world import integrate  # noqa: E402
 
 #: KITTI's left grey camera above the road (their set-up description).
 KITTI_CAMERA_HEIGHT_M = 1.65

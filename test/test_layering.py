@@ -10,9 +10,11 @@ baselines beside io on the core, and imports only run downward.
   ``hybrid_vo``.
 
 ``msg_adapters`` sits on the core; ``hybrid_vo`` on the core, ``msg_adapters`` and the ROS
-layer's node plumbing. Two checks: every import statement in the source (also those inside
-functions), and what importing each module actually loads (which catches indirect
-imports). ruff's banned-api rule (pyproject.toml) stops rclpy in a core file at lint time.
+layer's node plumbing. The simulator (``hybrid_vo.sim``) is a tool of the tests, the benchmarks
+and ``app``: no other part of the three packages imports it. Two checks: every import
+statement in the source (also those inside functions), and what importing each module
+actually loads (which catches indirect imports). ruff's banned-api rule (pyproject.toml)
+stops rclpy in a core file at lint time.
 """
 
 from __future__ import annotations
@@ -42,6 +44,8 @@ FORBIDDEN_EXTERNAL = {
     "ros": ("hybrid_vo",),
     "app": (),
 }
+#: The simulator: only itself and h2o_slam's applications may import it.
+SIMULATOR = "hybrid_vo.sim"
 #: What each sibling package may import from h2o_slam.
 SIBLING_ALLOWED = {"msg_adapters": ("core",), "hybrid_vo": ("core", "ros")}
 
@@ -71,6 +75,10 @@ def _imports(source: str, module: str) -> list[str]:
     return names
 
 
+def _within(module: str, package: str) -> bool:
+    return module == package or module.startswith(package + ".")
+
+
 def _layer(module: str) -> str | None:
     parts = module.split(".")
     return parts[1] if len(parts) > 1 and parts[0] == "h2o_slam" and parts[1] in LAYERS else None
@@ -92,6 +100,8 @@ def violations(module: str, source: str) -> list[str]:
         elif top in SIBLING_ALLOWED and target is not None:
             if target not in SIBLING_ALLOWED[top]:
                 found.append(f"{module} imports {name} ({target})")
+        if _within(name, SIMULATOR) and not (_within(module, SIMULATOR) or own == "app"):
+            found.append(f"{module} imports the simulator ({name})")
     return found
 
 
@@ -119,9 +129,12 @@ def test_imports_run_downward(package: str) -> None:
         ("h2o_slam.baselines.toro", "from h2o_slam.io.g2o import read_g2o"),
         ("h2o_slam.io.g2o", "from h2o_slam.baselines import toro"),
         ("h2o_slam.io.g2o", "from ..ros import mapper"),
-        ("h2o_slam.ros.mapper", "from hybrid_vo import world"),
+        ("h2o_slam.ros.mapper", "from hybrid_vo.sim import world"),
         ("msg_adapters.gps", "from h2o_slam.io.map_store import load_map"),
         ("hybrid_vo.frontend", "from h2o_slam.app.replay import replay"),
+        ("hybrid_vo.odometer", "from hybrid_vo.sim.world import make_drive"),
+        ("hybrid_vo.vo_node", "def f():\n    from .sim import messages"),
+        ("msg_adapters.gps", "from hybrid_vo import sim"),
     ],
 )
 def test_an_upward_import_is_reported(module: str, source: str) -> None:
@@ -133,6 +146,8 @@ def test_a_downward_import_passes() -> None:
     assert violations("h2o_slam.app.replay", source) == []
     assert violations("h2o_slam.app.cli.solve", "from h2o_slam.baselines import toro") == []
     assert violations("h2o_slam.baselines.toro", "from ..core.modes import tree_estimate") == []
+    assert violations("h2o_slam.app.cli.demo", "from hybrid_vo.sim import world") == []
+    assert violations("hybrid_vo.sim.messages", "from hybrid_vo.sim.world import Drive") == []
 
 
 # Imports each module named on the command line in a fresh interpreter, in turn, and prints
@@ -171,3 +186,9 @@ def test_io_and_the_rclpy_free_cores_load_no_rclpy() -> None:
     vo_core = [m for m, path in _modules("hybrid_vo") if "node" not in path.name]
     _loads_nothing_of(io + vo_core + ["h2o_slam.ros.mapper"],
                       ["rclpy", "h2o_slam.app"])
+
+
+def test_only_the_simulator_loads_the_simulator() -> None:
+    modules = [m for package in ("hybrid_vo", "msg_adapters") for m, _ in _modules(package)
+               if not _within(m, SIMULATOR)]
+    _loads_nothing_of(modules, [SIMULATOR])

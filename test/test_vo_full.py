@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from h2o_slam.core.geometry import planar_between
-from hybrid_vo.world import integrate, make_drive, scenario
+from hybrid_vo.sim.world import integrate, make_drive, scenario
 
 _BENCH = Path(__file__).resolve().parent.parent / "bench"
 if str(_BENCH) not in sys.path:

@@ -221,7 +221,7 @@ def run(ctx: Context) -> str:
         "- Platform: one core of this machine (shared, timings indicative), Python + OpenCV "
         "for both odometers, against a 2 GHz Pentium 4M running compiled Lush + IPP (hybrid) "
         "and Agrawal et al.'s C++ VO with bundle adjustment (full). Only the ratio compares.",
-        "- Data: synthetic drives rendered by `hybrid_vo.world` (far textured scenery, "
+        "- Data: synthetic drives rendered by `hybrid_vo.sim.world` (far textured scenery, "
         "textured ground, posts; 640×480, 0.12 m baseline, 10 Hz) and a 51-frame KITTI clip, "
         "against the thesis' 200 m outdoor logs with GPS as reference. Our ground truth is "
         "exact; KITTI has no wheels, so its wheel input is the true travel plus yaw noise.",

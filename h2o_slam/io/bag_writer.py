@@ -104,7 +104,7 @@ def write_bag(
 
     Args:
         messages: objects with ``topic``, ``type_name``, ``stamp_ns`` and an rclpy ``msg``
-            (:class:`hybrid_vo.world_messages.StreamMessage`), written as they come (the
+            (:class:`hybrid_vo.sim.messages.StreamMessage`), written as they come (the
             stream may be lazy: nothing is held in memory). Each ``stamp_ns`` is the bag
             time.
         storage: ``"mcap"`` or ``"sqlite3"``.

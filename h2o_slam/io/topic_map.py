@@ -44,7 +44,7 @@ ROLE_TYPES: dict[str, tuple[str, ...]] = {
     "ground_truth": _ODOMETRY,
 }
 
-#: Default topic of each role: the names :class:`hybrid_vo.world_messages.Topics` uses.
+#: Default topic of each role: the names :class:`hybrid_vo.sim.messages.Topics` uses.
 DEFAULT_TOPICS: dict[str, str] = {
     "left_image": "/left/image_rect",
     "right_image": "/right/image_rect",

@@ -19,8 +19,8 @@ from h2o_slam.app.replay import Replay, ReplayOptions, replay
 from h2o_slam.io.bag_reader import BagReader
 from h2o_slam.io.bag_writer import write_bag
 from h2o_slam.io.replay_outputs import read_tum
-from hybrid_vo import world
-from hybrid_vo.world_messages import drive_messages
+from hybrid_vo.sim import world
+from hybrid_vo.sim.messages import drive_messages
 
 pytestmark = pytest.mark.slow
 

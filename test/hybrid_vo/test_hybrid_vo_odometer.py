@@ -13,7 +13,7 @@ from hybrid_vo.camera import CameraIntrinsics, CameraMounting
 from hybrid_vo.errors import ConfigError, FrameError
 from hybrid_vo.frames import StereoFrame
 from hybrid_vo.odometer import FallbackReason, HybridOdometer, OdometerConfig
-from hybrid_vo.world import (
+from hybrid_vo.sim.world import (
     DriveConfig,
     NearObject,
     WheelSlipConfig,

@@ -23,9 +23,9 @@ from hybrid_vo.frontend import (
     reason_key,
 )
 from hybrid_vo.odometer import HybridOdometer
+from hybrid_vo.sim.messages import camera_models
+from hybrid_vo.sim.world import Drive, make_drive, scenario, wrap_angle
 from hybrid_vo.sync import LEFT, RIGHT, StarvationMonitor, StereoSync, SyncConfig
-from hybrid_vo.world import Drive, make_drive, scenario, wrap_angle
-from hybrid_vo.world_messages import camera_models
 from msg_adapters import AdapterError
 
 MS = 1_000_000

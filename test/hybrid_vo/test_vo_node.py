@@ -36,9 +36,9 @@ from std_srvs.srv import SetBool, Trigger
 
 import msg_adapters as ma
 from hybrid_vo.errors import ConfigError
+from hybrid_vo.sim.messages import DEFAULT_START_NS, StreamMessage, Topics, drive_messages
+from hybrid_vo.sim.world import Drive, make_drive, scenario, wrap_angle
 from hybrid_vo.vo_node import PARAMETERS, HybridVoNode, main
-from hybrid_vo.world import Drive, make_drive, scenario, wrap_angle
-from hybrid_vo.world_messages import DEFAULT_START_NS, StreamMessage, Topics, drive_messages
 
 REPO = Path(__file__).resolve().parents[2]
 TURN = (math.pi / 2) / 3.0
@@ -465,7 +465,7 @@ def test_config_yaml_lists_every_parameter_and_starts_the_node(context) -> None:
         assert descriptor.description and descriptor.integer_range[0].to_value == 64
         assert node.describe_parameter("camera_pitch").floating_point_range[0].to_value == 1.5
         assert node.input_topics["odom"] == "/odom"
-        assert node.input_topics["left_image"] == Topics().left_image  # world_messages' names
+        assert node.input_topics["left_image"] == Topics().left_image  # the simulator's names
         assert node.output_topics["odometry"] == "/odometry/hybrid"
     finally:
         node.destroy_node()

@@ -21,8 +21,8 @@ from h2o_slam.io.bag_reader import BagMessage, BagReader, read_bag
 from h2o_slam.io.bag_writer import BagWriter, message_type_name, write_bag
 from h2o_slam.io.bags import DATUM_KEY, ReplayError, jazzy_typestore
 from h2o_slam.io.topic_map import DEFAULT_TOPICS, ROLES, load_topic_map, topic_map
-from hybrid_vo.world import make_drive, scenario
-from hybrid_vo.world_messages import StreamMessage, Topics, drive_messages, rclpy_message_types
+from hybrid_vo.sim.messages import StreamMessage, Topics, drive_messages, rclpy_message_types
+from hybrid_vo.sim.world import make_drive, scenario
 
 REPO = Path(__file__).resolve().parents[2]
 JAZZY = jazzy_typestore()

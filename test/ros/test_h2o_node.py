@@ -26,8 +26,8 @@ import msg_adapters as ma
 from h2o_slam.core.errors import InputError
 from h2o_slam.core.graph import edge_chi2
 from h2o_slam.ros.h2o_node import H2ONode
-from hybrid_vo import world
-from hybrid_vo.world_messages import DEFAULT_START_NS, StreamMessage, drive_messages
+from hybrid_vo.sim import world
+from hybrid_vo.sim.messages import DEFAULT_START_NS, StreamMessage, drive_messages
 
 ROLES = {"/wheel/odom": ("odom", Odometry), "/gps/fix": ("gps/fix", NavSatFix),
          "/loop_closure": ("loop_closure", Odometry)}

@@ -2,7 +2,7 @@
 
     h2o-demo [--output DIR] [--seed N] [--laps N] [--storage mcap|sqlite3]
 
-Simulates a drive with :mod:`hybrid_vo.world` (stereo camera, wheel odometry with slip and
+Simulates a drive with :mod:`hybrid_vo.sim.world` (stereo camera, wheel odometry with slip and
 hallucinated turns, GPS with dropouts, loop closures, ground truth), writes it as a bag,
 replays it with ``h2o-replay``'s machinery twice — with and without GPS — and prints ATE
 and final error of wheel odometry, hybrid VO, H₂O without GPS and H₂O with GPS. DIR
@@ -42,8 +42,8 @@ from h2o_slam.io.bags import DATUM_KEY, Storage
 from h2o_slam.io.g2o import read_g2o
 from h2o_slam.io.plots import plot_callback_times, plot_chi2, plot_trajectories
 from h2o_slam.io.replay_outputs import read_tum
-from hybrid_vo import world
-from hybrid_vo.world_messages import drive_messages
+from hybrid_vo.sim import world
+from hybrid_vo.sim.messages import drive_messages
 
 PROG = "h2o-demo"
 
@@ -67,7 +67,7 @@ PLOTS = ("trajectories.png", "chi2.png", "callback_times.png")
 #: short, so finer than h2o-replay's default.
 GRAPH_PERIOD_S = 1.0
 
-#: Where hybrid_vo.world puts the origin of its ENU frame (lat, lon, alt): the demo's
+#: Where hybrid_vo.sim.world puts the origin of its ENU frame (lat, lon, alt): the demo's
 #: surveyed datum, stated in its bag, so that the map frame and the ground truth share their
 #: origin.
 WORLD_DATUM = list(world.GPS_DATUM)

@@ -1,4 +1,4 @@
-"""The synthetic drives with sharp turns (``sharp_turns``, ``spin``) of hybrid_vo.world."""
+"""The synthetic drives with sharp turns (``sharp_turns``, ``spin``) of hybrid_vo.sim.world."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hybrid_vo.errors import ConfigError
-from hybrid_vo.world import make_drive, scenario
+from hybrid_vo.sim.world import make_drive, scenario
 
 
 def test_sharp_turns_takes_right_angles_at_nine_and_eleven_degrees_a_frame():

@@ -10,7 +10,7 @@ import pytest
 
 from h2o_slam.core.geometry import planar_between
 from hybrid_vo.errors import ConfigError
-from hybrid_vo.world import (
+from hybrid_vo.sim.world import (
     STATUS_FIX,
     STATUS_NO_FIX,
     DriveConfig,
@@ -144,7 +144,7 @@ def test_bad_world_config_raises(make, match) -> None:
 def test_gps_fixes_convert_back_to_their_enu_exactly() -> None:
     # The fixes' latitude/longitude are exact WGS-84 images of their ENU positions about
     # GPS_DATUM, as the node converts them back (msg_adapters.gps).
-    from hybrid_vo import world
+    from hybrid_vo.sim import world
     from msg_adapters.gps import Datum
 
     drive = world.make_drive(world.scenario("straight", seed=1))

@@ -1,4 +1,4 @@
-"""A simulated drive (:mod:`hybrid_vo.world`) as the ROS messages a robot would record.
+"""A simulated drive (:mod:`hybrid_vo.sim.world`) as the ROS messages a robot would record.
 
 One stream, in stamp order, of what the nodes subscribe to (stereo images and camera
 info, wheel odometry, NavSatFix, loop closures in the package's convention) plus the
@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 import msg_adapters as ma
-from hybrid_vo.world import STATUS_NO_FIX, Drive, wrap_angle
+from hybrid_vo.sim.world import STATUS_NO_FIX, Drive, wrap_angle
 
 #: Stamp of the first frame: a plausible epoch time, since 0 means "unset" to many tools.
 DEFAULT_START_NS = 1_700_000_000 * 1_000_000_000
