@@ -14,7 +14,8 @@ layer's node plumbing. The simulator (``hybrid_vo.sim``) is a tool of the tests,
 and ``app``: no other part of the three packages imports it. Two checks: every import
 statement in the source (also those inside functions), and what importing each module
 actually loads (which catches indirect imports). ruff's banned-api rule (pyproject.toml)
-stops rclpy in a core file at lint time.
+stops rclpy in a core file at lint time. Within the core, no two modules import each other,
+directly or through others (an import circle).
 """
 
 from __future__ import annotations
@@ -148,6 +149,50 @@ def test_a_downward_import_passes() -> None:
     assert violations("h2o_slam.baselines.toro", "from ..core.modes import tree_estimate") == []
     assert violations("h2o_slam.app.cli.demo", "from hybrid_vo.sim import world") == []
     assert violations("hybrid_vo.sim.messages", "from hybrid_vo.sim.world import Drive") == []
+
+
+def import_circles(sources: dict[str, str]) -> list[list[str]]:
+    """The import circles among the modules of ``sources`` (module name → source): each the
+    sorted modules that reach one another through import statements (also those inside
+    functions: a call that runs one still needs the other's module loaded)."""
+    graph = {m: {n for n in _imports(src, m) if n in sources and n != m}
+             for m, src in sources.items()}
+    reach = {}
+    for start in graph:
+        seen: set[str] = set()
+        todo = list(graph[start])
+        while todo:
+            name = todo.pop()
+            if name not in seen:
+                seen.add(name)
+                todo += graph[name]
+        reach[start] = seen
+    circles = {tuple(sorted(n for n in reach[m] if m in reach[n])) for m in graph if m in reach[m]}
+    return sorted(list(circle) for circle in circles)
+
+
+def _core_sources() -> dict[str, str]:
+    return {m: path.read_text(encoding="utf-8") for m, path in _modules("h2o_slam/core")}
+
+
+def test_the_core_imports_without_a_circle() -> None:
+    assert import_circles(_core_sources()) == []
+
+
+@pytest.mark.parametrize(
+    ("module", "planted", "other"),
+    [
+        # compiled.py's warm-up once imported the solver modules that import it.
+        ("h2o_slam.core.compiled", "def warm():\n    from h2o_slam.core.solver import H2OSolver",
+         "h2o_slam.core.solver"),
+        ("h2o_slam.core.geometry", "from .online import OnlineH2O", "h2o_slam.core.online"),
+    ],
+)
+def test_a_planted_import_circle_is_found(module: str, planted: str, other: str) -> None:
+    sources = _core_sources()
+    sources[module] += "\n\n" + planted + "\n"
+    circles = import_circles(sources)
+    assert any(module in circle and other in circle for circle in circles), circles
 
 
 # Imports each module named on the command line in a fresh interpreter, in turn, and prints
