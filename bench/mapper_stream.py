@@ -95,7 +95,7 @@ def stream_graph(graph: PoseGraph, budget_ms: float = 5.0, idle_s: float = 1.0,
             time.sleep(GAP_S)
         until = time.perf_counter() + idle_s
         while time.perf_counter() < until:
-            mapper.step()
+            mapper.step(mapper.config.budget_s)
         mapper.exact_solve()
         seconds = time.perf_counter() - begin
         weights = _graph_weights(mapper, graph, mapped, odometry)

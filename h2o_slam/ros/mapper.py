@@ -135,6 +135,11 @@ class MapperConfig:
         if self.d_max is not None and self.d_max < 1:
             raise ValueError(f"d_max must be >= 1, got {self.d_max!r}")
 
+    @property
+    def budget_s(self) -> float | None:
+        """``budget_ms`` in seconds (``None``: no limit), as :meth:`Mapper.step` takes it."""
+        return None if self.budget_ms is None else self.budget_ms * 1e-3
+
 
 class OdometryTrack:
     """Every odometry sample received, ``(stamp_ns, x, y, unwrapped yaw)``, for carrying
@@ -602,11 +607,9 @@ class Mapper:
 
     # -- solving ------------------------------------------------------------------------------
 
-    def step(self, budget_s: float | None | str = "config") -> StepReport:
-        """One solver step within the budget (the configured one unless given)."""
-        if budget_s == "config":
-            budget_s = None if self.config.budget_ms is None else self.config.budget_ms * 1e-3
-        assert not isinstance(budget_s, str)
+    def step(self, budget_s: float | None) -> StepReport:
+        """One solver step within ``budget_s`` seconds (``None``: no limit; the configured
+        budget is ``self.config.budget_s``)."""
         if self.h2o.online.d_max != self.config.d_max:
             self.h2o.online = replace(self.h2o.online, d_max=self.config.d_max)
         self.last_report = self.h2o.step(budget_s)

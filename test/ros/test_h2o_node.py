@@ -261,7 +261,7 @@ def test_budget_changes_at_run_time(harness: Harness, slip_drive: world.Drive) -
     budgets: list[float | None] = []
     step = node.mapper.step
 
-    def spy(budget_s: Any = "config") -> Any:
+    def spy(budget_s: float | None) -> Any:
         budgets.append(budget_s)
         return step(budget_s)
 
