@@ -347,7 +347,7 @@ def solve_online(
     other work keeps the rest of the CPU); unbudgeted, a single idle step solves the map
     exactly.
     """
-    h2o = OnlineH2O(graph.planar, config, online)
+    h2o = OnlineH2O(planar=graph.planar, config=config, online=online)
     try:
         result = SolveResult(graph.R.copy(), graph.t.copy(), chi2(graph))
         spent = _stream(h2o, graph, budget_s, trace_every, set(sample_nodes), result,

@@ -191,7 +191,7 @@ class OnlineH2O:
     """
 
     def __init__(
-        self, planar: bool, config: SolverConfig | None = None,
+        self, *, planar: bool, config: SolverConfig | None = None,
         online: OnlineConfig | None = None,
     ) -> None:
         # Budgeted callbacks must not pay for loading kernels: all of them now, unless a

@@ -281,9 +281,10 @@ class Mapper:
         self.config = config or MapperConfig()
         self._solver_config = solver
         robust = RobustConfig() if self.config.robust else None
-        self.h2o = OnlineH2O(True, solver, OnlineConfig(d_max=self.config.d_max,
-                                                        background=self.config.background,
-                                                        robust=robust))
+        self.h2o = OnlineH2O(planar=True, config=solver,
+                             online=OnlineConfig(d_max=self.config.d_max,
+                                                 background=self.config.background,
+                                                 robust=robust))
         self.keyframes = Keyframes()
         self.track = OdometryTrack()
         self.rejected: Counter[str] = Counter()

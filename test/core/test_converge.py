@@ -63,7 +63,7 @@ def _fake_clock(h2o: OnlineH2O, step_s: float = 1e-4):
 def test_budgeted_steps_converge_to_the_exact_optimum_with_a_fake_clock(name, request):
     graph = request.getfixturevalue(name)
     optimum = solve_exact(graph, iterations=50).chi2_final
-    h2o = OnlineH2O(graph.planar, online=OnlineConfig(background="inline", freeze_gc=False))
+    h2o = OnlineH2O(planar=graph.planar, online=OnlineConfig(background="inline", freeze_gc=False))
     _fake_clock(h2o)
     # Whole inline solves run only when predicted to fit the time left, and at first they
     # do not: the stream alone leaves work for the idle steps.
@@ -79,7 +79,7 @@ def test_budgeted_steps_converge_to_the_exact_optimum_with_a_fake_clock(name, re
 def test_budgeted_inline_solves_run_a_few_iterations_at_a_time(city):
     # Their cost must be foreseeable: to convergence, it depends on iterations no model
     # predicts (an idle step of 10 ms ran 24 ms).
-    h2o = OnlineH2O(True, online=OnlineConfig(background="inline", freeze_gc=False))
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(background="inline", freeze_gc=False))
     _fake_clock(h2o)
     solved = []
     solve = h2o.converger._inline.solve
@@ -102,7 +102,7 @@ def test_an_unlimited_or_huge_budget_ends_at_the_exact_optimum(city):
 
 
 def test_a_budget_must_be_a_non_negative_number():
-    h2o = OnlineH2O(True)
+    h2o = OnlineH2O(planar=True)
     for bad in (float("nan"), -1e-3):
         with pytest.raises(ValueError, match="budget_s"):
             h2o.step(bad)
@@ -125,7 +125,7 @@ def _solve_snapshot(h2o: OnlineH2O, graph) -> Solution:
 
 @pytest.mark.parametrize("slices", [1, 3])
 def test_merging_keeps_nodes_added_after_the_snapshot_at_their_tree_pose(city, slices):
-    h2o = OnlineH2O(True, online=OnlineConfig(background="off", balance=False))
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(background="off", balance=False))
     _feed(h2o, city, 60, None)
     sol = _solve_snapshot(h2o, city)
     snapshot_optimum = chi2(prefix_graph(city, 60), sol.R, sol.t)
@@ -156,7 +156,7 @@ def _feed_from(h2o: OnlineH2O, graph, first: int, last: int) -> None:
 
 
 def test_a_solution_from_before_a_subtree_move_is_dropped(city):
-    h2o = OnlineH2O(True, online=OnlineConfig(background="inline"))
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(background="inline"))
     _feed(h2o, city, 40, None)
     conv = h2o.converger
     stale = _solve_snapshot(h2o, city)
@@ -182,11 +182,11 @@ def _settle_with_worker(h2o: OnlineH2O, graph) -> None:
 def test_the_worker_process_solves_what_inline_solves(cube):
     """The same snapshot through the worker process and inline: the same optimum, and the
     process ends when its owner closes."""
-    inline = OnlineH2O(False, online=OnlineConfig(background="inline"))
+    inline = OnlineH2O(planar=False, online=OnlineConfig(background="inline"))
     _feed(inline, cube, cube.num_nodes, None)
     expected = inline.converge()
     assert expected is not None and expected.converged
-    h2o = OnlineH2O(False, online=OnlineConfig(background="process", freeze_gc=False))
+    h2o = OnlineH2O(planar=False, online=OnlineConfig(background="process", freeze_gc=False))
     try:
         _settle_with_worker(h2o, cube)
         assert h2o.converger.outside() == 0
@@ -213,7 +213,7 @@ def test_every_thread_of_the_worker_is_niced_idle_class_and_its_blas_has_one(cub
     """Linux's nice and scheduling class are per thread: the BLAS threads numpy starts must
     not run at the callbacks' priority. The worker is niced and SCHED_IDLE before any import
     and runs BLAS on one thread."""
-    h2o = OnlineH2O(False, online=OnlineConfig(background="process", freeze_gc=False))
+    h2o = OnlineH2O(planar=False, online=OnlineConfig(background="process", freeze_gc=False))
     try:
         _settle_with_worker(h2o, cube)
         assert h2o.converger.state.converged_edges == cube.num_edges  # numpy is loaded
@@ -241,7 +241,7 @@ def test_idle_steps_iterate_the_live_map_while_the_worker_starves(city):
     """The worker never answers (stopped): idle steps alone bring the map to the optimum,
     damped Gauss–Newton on the live map in phases that fit them."""
     optimum = solve_exact(city, iterations=50).chi2_final
-    h2o = OnlineH2O(True, online=OnlineConfig(background="process", freeze_gc=False))
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(background="process", freeze_gc=False))
     pid = _starved(h2o)
     try:
         _feed(h2o, city, city.num_nodes, 1e-3)
@@ -267,7 +267,7 @@ def test_idle_steps_iterate_the_live_map_while_the_worker_starves(city):
 
 
 def test_a_worker_is_starved_only_when_its_job_is_out_far_longer_than_jobs_take():
-    converger = OnlineH2O(True, online=OnlineConfig(background="inline")).converger
+    converger = OnlineH2O(planar=True, online=OnlineConfig(background="inline")).converger
 
     class Busy:
         busy = True
@@ -285,7 +285,7 @@ def test_a_worker_is_starved_only_when_its_job_is_out_far_longer_than_jobs_take(
 
 
 def test_a_live_iteration_runs_only_when_it_is_predicted_to_fit(city):
-    h2o = OnlineH2O(True, online=OnlineConfig(background="process", freeze_gc=False))
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(background="process", freeze_gc=False))
     pid = _starved(h2o)
     try:
         _feed(h2o, city, city.num_nodes, 1e-3)
@@ -302,7 +302,7 @@ def test_a_live_iteration_runs_only_when_it_is_predicted_to_fit(city):
 def test_edges_that_never_fit_the_budget_are_solved_by_the_worker(city):
     """A budget no loop closure's update fits: the closures wait, and the solutions merged
     in idle steps take them in."""
-    h2o = OnlineH2O(True, online=OnlineConfig(background="process", freeze_gc=False))
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(background="process", freeze_gc=False))
     try:
         _feed(h2o, city, city.num_nodes, 2e-4)
         deadline = time.monotonic() + 60.0
@@ -316,7 +316,7 @@ def test_edges_that_never_fit_the_budget_are_solved_by_the_worker(city):
 
 
 def test_converge_solves_now_and_clears_the_waiting_edges(city):
-    h2o = OnlineH2O(True, online=OnlineConfig(background="off"))
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(background="off"))
     _fake_clock(h2o, 1.0)  # nothing ever fits: every new edge waits
     for node, edges in enumerate(arrivals(city)):
         add_arrival(h2o, city, node, edges)

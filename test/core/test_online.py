@@ -19,7 +19,7 @@ from h2o_slam.io.synthetic import grid3d, manhattan
 
 
 def _feed(graph, online=None, budget_s=None, config=None):
-    h2o = OnlineH2O(graph.planar, config, online)
+    h2o = OnlineH2O(planar=graph.planar, config=config, online=online)
     reports = []
     for node, edges in enumerate(arrivals(graph)):
         add_arrival(h2o, graph, node, edges)
@@ -70,7 +70,7 @@ def test_balanced_tree_depth_is_the_breadth_first_depth_on_the_sphere():
                                   lambda: grid3d(80, seed=2).graph])
 def test_every_depth_is_at_most_a_neighbour_depth_plus_one(make):
     graph = make()
-    h2o = OnlineH2O(graph.planar)
+    h2o = OnlineH2O(planar=graph.planar)
     for node, edges in enumerate(arrivals(graph)):
         add_arrival(h2o, graph, node, edges)
         h2o.step(None)
@@ -106,7 +106,7 @@ def test_separate_trees_merge_through_a_joining_edge():
     cut = 60
     keep = ~((np.minimum(graph.a, graph.b) < cut) & (np.maximum(graph.a, graph.b) >= cut))
     joins = np.flatnonzero(~keep)
-    h2o = OnlineH2O(True)
+    h2o = OnlineH2O(planar=True)
     for node in range(graph.num_nodes):
         edges = [e for e in np.flatnonzero(keep) if max(graph.a[e], graph.b[e]) == node]
         if node == 0:
@@ -146,7 +146,7 @@ def test_budgeted_step_never_starts_work_predicted_to_overrun():
 
 def test_edges_that_do_not_fit_wait_for_a_later_step():
     graph = manhattan(80, seed=1).graph
-    h2o = OnlineH2O(True)
+    h2o = OnlineH2O(planar=True)
     for node, edges in enumerate(arrivals(graph)):
         add_arrival(h2o, graph, node, edges)
         report = h2o.step(1e-7)
@@ -219,7 +219,7 @@ def test_batched_gps_beats_one_at_a_time_on_the_dog_leg():
 
 def test_gps_edges_wait_for_three_then_the_subtree_is_fitted():
     graph = _dog_leg_graph(every=10)
-    h2o = OnlineH2O(True)
+    h2o = OnlineH2O(planar=True)
     waiting = []
     for node, edges in enumerate(arrivals(graph)):
         add_arrival(h2o, graph, node, edges)
@@ -235,7 +235,7 @@ def test_gps_edge_that_cannot_fit_is_refused_before_its_batch_is_built(monkeypat
     # Building the batch walks to the earth: O(depth) on every refused attempt otherwise
     # (15 ms a try at 20k keyframes, measured by bench/nodes.py --growth).
     graph = _dog_leg_graph(every=10)
-    h2o = OnlineH2O(True, online=OnlineConfig(balance=False))
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(balance=False))
     for node, edges in enumerate(arrivals(graph)):
         add_arrival(h2o, graph, node, edges)
         h2o.step(None)
@@ -293,7 +293,7 @@ def test_revisits_fill_the_budget_and_are_timed_apart():
 
 def test_add_edge_only_queues_rebalancing_and_a_step_does_it():
     graph = sphere_graph(rings=6, per_ring=12)
-    h2o = OnlineH2O(graph.planar)
+    h2o = OnlineH2O(planar=graph.planar)
     moved_in_add = 0
     for node, edges in enumerate(arrivals(graph)):
         before = h2o.solver.tree.parent[: h2o.num_nodes].copy()
@@ -308,7 +308,7 @@ def test_add_edge_only_queues_rebalancing_and_a_step_does_it():
 
 def test_rebalancing_that_does_not_fit_waits_and_then_completes():
     graph = sphere_graph(rings=6, per_ring=12)
-    h2o = OnlineH2O(graph.planar, online=OnlineConfig(balance_max_subtree=None))
+    h2o = OnlineH2O(planar=graph.planar, online=OnlineConfig(balance_max_subtree=None))
     for node, edges in enumerate(arrivals(graph)):
         add_arrival(h2o, graph, node, edges)
     h2o._hang_cost_per_node = 1.0  # a second per node: nothing fits a millisecond
@@ -322,7 +322,7 @@ def test_rebalancing_that_does_not_fit_waits_and_then_completes():
 
 
 def test_lateness_tracking_holds_back_its_995th_percentile():
-    h2o = OnlineH2O(True, online=OnlineConfig(reserve=0.0))
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(reserve=0.0))
     rng = np.random.default_rng(3)
     budget = 5e-3
     late = rng.exponential(0.4e-3, 40000)
@@ -342,7 +342,7 @@ def test_steps_overrun_their_budget_about_once_in_two_hundred():
     was given (a missed prediction); what is held back must make that an overrun of the
     whole budget in about 0.5 % of the steps, whatever the reserve already covers."""
     budget = 5e-3
-    h2o = OnlineH2O(True, online=OnlineConfig(reserve=0.1, freeze_gc=False))
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(reserve=0.1, freeze_gc=False))
     rng = np.random.default_rng(5)
     now = [0.0]
     h2o._clock = lambda: now[0]

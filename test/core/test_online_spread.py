@@ -16,8 +16,8 @@ def chi2_after_closure(g: PoseGraph, spread: bool, solve: bool, budget_s: float 
                        ) -> tuple[float, Counter[str]]:
     """χ² right after the callback that brings the last closure of ``g``, over the optimum,
     with H₂O's updates alone (no exact solves); and the first corrections counted."""
-    h2o = OnlineH2O(g.planar, None, OnlineConfig(background="off", spread_loops=spread,
-                                                 solve_loops=solve))
+    h2o = OnlineH2O(planar=g.planar, online=OnlineConfig(background="off", spread_loops=spread,
+                                                         solve_loops=solve))
     try:
         for node, edges in enumerate(arrivals(g)):
             add_arrival(h2o, g, node, edges)
@@ -59,7 +59,7 @@ def test_closures_a_merged_solution_left_out_are_spread_again() -> None:
     """A solution merged after a closure arrived was solved without it: the closure's
     correction went with the poses the merge replaced, so it is queued again."""
     g = loop_graph(4, True, 120, reverse=False)
-    h2o = OnlineH2O(True, None, OnlineConfig(background="inline"))
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(background="inline"))
     try:
         feed = list(arrivals(g))
         for node, edges in enumerate(feed[:-1]):
