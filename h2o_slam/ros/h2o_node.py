@@ -165,7 +165,30 @@ def _load_tf_message() -> Any:
 
 
 class H2ONode(Node):
-    """See the module docstring."""
+    """The H₂O back end as a ROS 2 node: odometry, loop closures and GPS fixes in; the
+    optimized graph, pose, ``map → odom`` and ``/diagnostics`` out.
+
+    Parameters are declared from :data:`PARAMETERS` (the README lists them); the mapping
+    itself is :attr:`mapper`'s. Every input runs behind one boundary (:meth:`_guarded`):
+    held while the compiled kernels load, then handled and timed; a bad message is logged,
+    counted and skipped.
+
+    Args:
+        **kwargs: passed to :class:`rclpy.node.Node` (``context``, ``namespace``,
+            ``parameter_overrides``, ``cli_args``, ...).
+
+    Attributes:
+        mapper: the back end without ROS (keyframes, gated loop closures, GPS, the solver).
+        sink: callable ``(topic, msg)`` that also receives every published message (replay
+            records through it), or None.
+        paused: inputs are counted as discarded instead of handled (the ``~/pause`` service).
+        times, idle_times: the input callbacks' and the idle steps' time against their
+            budgets.
+        inputs: what became of each input's messages (accepted, rejected, discarded, lost).
+        rejected: inputs the boundary rejected, by reason (the mapper counts those it
+            refuses itself; ``/diagnostics`` reports both).
+        held_while_warming: inputs held while the kernels loaded.
+    """
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
