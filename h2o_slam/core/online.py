@@ -530,14 +530,15 @@ class OnlineH2O:
                        max(0.3, self.online.reserve) * budget_s)
             deadline = start + budget_s - held
         report = StepReport()
-        # New loop closures spread first: a long loop's own correction is worth more to the
-        # map right after its closure than anything else a step can do.
-        self._spread_queued(deadline)
         if budget_s is not None:
             # A waiting solution first, within a share: it moves the whole map to an
-            # optimum, worth more than any one new edge's update.
+            # optimum, worth more than any one new edge's update. Before the new closures'
+            # corrections: solved without them, it would put back the map they corrected.
             self._converge_within(min(deadline, start + self.online.merge_share * budget_s),
                                   False, idle, report)
+        # Then new loop closures: a long loop's own correction is worth more to the map
+        # right after its closure than anything else a step can do.
+        self._spread_queued(deadline)
         self._relax_new(deadline, report)
         self._spread_queued(deadline)
         if self.online.balance:
@@ -546,6 +547,10 @@ class OnlineH2O:
         report.balanced = (self._refresh_stale(deadline) and not self._balance_queue
                            and not self._hang_queue)
         self._converge_within(deadline, budget_s is None, idle, report)
+        # A solution merged just now put back the map without the closures newer than it
+        # (measured on intel: r 2·10⁴ right after a closure's callback, its loop solved
+        # and then undone): their corrections again, while time is left.
+        self._spread_queued(deadline)
         for edge in self.pending:
             self.waiting[edge] = self.waiting.get(edge, 0) + 1
         report.deferred = len(self.pending)
