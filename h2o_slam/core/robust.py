@@ -459,6 +459,15 @@ def _local_moves(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, itera
         if len(out):
             ratio = innovation_chi2(solver, out) / c2[out]
             ratio[vetoed[out]] = np.inf
+            fitting = out[ratio <= 1.0]
+            if len(fitting) > 1:
+                # Every closure the map already agrees with, at once: one by one, eight
+                # tries a round left 702 of city10000's true closures out beside 1,000
+                # grouped false ones.
+                kept, converged = _try_move(solver, w, free, c2, fitting, 1.0, iterations,
+                                            history, converged, restart)
+                if kept:
+                    continue
             # The plausible members of each place: a false closure dropped beside true
             # ones of the same revisit stays out when they come back.
             groups = [g[ratio[g] <= READMIT]

@@ -14,6 +14,8 @@ from h2o_slam.core.geometry import PLANAR_DOF
 from h2o_slam.core.graph import EdgeKind, PoseGraph, chi2, make_graph
 from h2o_slam.core.modes import build_solver, solve_exact
 from h2o_slam.core.robust import (
+    CLUSTER_SPAN,
+    MAX_TRIES,
     EdgeState,
     RobustConfig,
     RobustOutcome,
@@ -144,6 +146,27 @@ def test_a_dropped_true_closure_is_readmitted(world):
     weights[closure] = 0.0
     outcome = converge_robust(solver, 100, trusted, RobustConfig(), weights=weights)
     assert outcome.weights[closure] == 1.0
+    np.testing.assert_allclose(solver.world_poses()[1], optimum.t, atol=1e-6)
+
+
+def test_true_closures_dropped_at_many_places_come_back(world):
+    """True closures of more places than one round of re-admissions tries start dropped
+    (each alone agrees with the map, so they come back together, in one move); the map
+    ends at the optimum."""
+    graph, optimum = world
+    trusted = odometry_edges(graph.kind, graph.a, graph.b)
+    closures = np.flatnonzero(~trusted)
+    dropped, last = [], -CLUSTER_SPAN - 1
+    for e in closures[np.argsort(graph.b[closures])]:  # places apart along the way
+        if graph.b[e] > last + CLUSTER_SPAN:
+            dropped.append(e)
+            last = graph.b[e]
+    assert len(dropped) > MAX_TRIES
+    solver, _ = build_solver(graph, init="tree", regularizer=False, trusted=trusted)
+    weights = np.ones(graph.num_edges)
+    weights[dropped] = 0.0
+    outcome = converge_robust(solver, 100, trusted, RobustConfig(), weights=weights)
+    assert np.all(outcome.weights[dropped] == 1.0)
     np.testing.assert_allclose(solver.world_poses()[1], optimum.t, atol=1e-6)
 
 
