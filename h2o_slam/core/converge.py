@@ -637,12 +637,13 @@ class Converger:
         return self.solver.num_edges - self.state.converged_edges
 
     def work(self, deadline: float, clock: Any, unlimited: bool, idle: bool,
-             safety: float) -> Solution | None:
+             safety: float, hold_before: int = 0) -> Solution | None:
         """Merge, solve or dispatch what fits before ``deadline``; returns a solution whose
         merge this call completed.
 
         ``unlimited``: no budget (merge whole, solve inline on the geometric schedule);
-        ``idle``: no edge arrived since the last step (solve inline whenever it fits).
+        ``idle``: no edge arrived since the last step (solve inline whenever it fits);
+        ``hold_before``: a solution of fewer edges waits (unless its merge has begun).
         """
         if not self.enabled:
             return None
@@ -658,7 +659,8 @@ class Converger:
                 self._dispatch(deadline, clock, safety)
         elif idle and not unlimited and self._merging is None and self._starved(clock):
             self._iterate_live(deadline, clock, safety)
-        if self._merging is None:
+        sol = self._merging
+        if sol is None or (self._cursor == 0 and sol.edges < hold_before):
             return None
         return self._merge(math.inf if unlimited else deadline, clock, safety)
 

@@ -479,3 +479,25 @@ def test_a_systems_first_solve_is_no_sample_of_the_solve_cost(city):
     assert live._lin.system.factor_ready and live.solve_cost.samples == 0
     live.run(key, math.inf, time.perf_counter, 1.0)
     assert live.settled and live.solve_cost.samples >= live.iterations - 1
+
+
+def test_a_solution_older_than_the_hold_waits_for_a_later_call(city):
+    """A step that corrected a closure holds solutions without it: merged, one would put
+    back the map the correction replaced. The held one is merged by the next call."""
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(background="inline"))
+    try:
+        _feed(h2o, city, 59, None)
+        add_arrival(h2o, city, 59, arrivals(city)[59])  # edges no solution holds yet
+        conv = h2o.converger
+        m = h2o.solver.num_edges
+        before = h2o.solver.world_poses()[1].copy()
+        assert conv.work(math.inf, time.perf_counter, unlimited=True, idle=True, safety=1.2,
+                         hold_before=m + 1) is None
+        np.testing.assert_array_equal(h2o.solver.world_poses()[1], before)
+        merged = conv.work(math.inf, time.perf_counter, unlimited=True, idle=True,
+                           safety=1.2, hold_before=m)
+        assert merged is not None and merged.edges == m
+        assert h2o.solver.chi2(prefix_graph(city, 60)) < chi2(prefix_graph(city, 60), None,
+                                                               before)
+    finally:
+        h2o.close()
