@@ -252,6 +252,32 @@ class _Prepared:
     stereo: tuple[NDArray[np.uint8], NDArray[np.uint8]]  # the pair the range test reads
 
 
+#: A patch that passed the range test: ``(row, col, horizontal range m)`` in the previous
+#: spherical image (range ``inf``: too little disparity to range).
+_Patch = tuple[int, int, float]
+
+
+@dataclass(frozen=True)
+class _TrackResult:
+    """What tracking one frame pair found (:meth:`HybridOdometer._track`).
+
+    Attributes:
+        fallback: why the frame defers to the wheels, or ``FallbackReason.NONE``.
+        num_sampled, num_far, num_matched, num_inliers: patches at each stage, as
+            :class:`OdometryUpdate` reports them (0 for stages not reached).
+        dyaw_rad: the visual yaw increment ``θ_v``; NaN unless ``fallback`` is ``NONE``.
+        yaw_sigma_rad: its standard deviation (before the floor); NaN likewise.
+    """
+
+    fallback: FallbackReason
+    num_sampled: int = 0
+    num_far: int = 0
+    num_matched: int = 0
+    num_inliers: int = 0
+    dyaw_rad: float = math.nan
+    yaw_sigma_rad: float = math.nan
+
+
 class HybridOdometer:
     """Wheel odometry with its yaw replaced by visual bearing tracking (thesis ch. 2).
 
@@ -324,48 +350,26 @@ class HybridOdometer:
             raise FrameError(f"wheel_delta must be 3 finite numbers, got {wheel_delta!r}")
         cur = self._prepare(frame)
         prev, self._prev = self._prev, cur
-        counts = (0, 0, 0, 0)
         if prev is None:
-            reason = FallbackReason.FIRST_FRAME
-            result: tuple[float, float] | None = None
+            track = _TrackResult(FallbackReason.FIRST_FRAME)
         else:
-            result, reason, counts = self._track(prev, cur, wheel)
-        cfg = self.config
-        if result is None:
-            delta = wheel.copy()
-            sigma = cfg.fallback_yaw_sigma_rad
-        else:
-            theta_v, sigma = result
-            # (2.4) wants the wheel translation with the wheel's full rotation applied;
-            # a wheel increment in the previous frame follows the midpoint convention
-            # (travel along θ_w/2), so rotate by the other θ_w/2 first.
-            half_w = wheel[2] / 2.0
-            c, s = math.cos(half_w), math.sin(half_w)
-            dp_end = np.array([c * wheel[0] - s * wheel[1], s * wheel[0] + c * wheel[1]])
-            dp = pt.localize(np.zeros(2), theta_v, float(wheel[2]), dp_end)
-            delta = np.array([dp[0], dp[1], theta_v])
-            sigma = max(sigma, cfg.yaw_sigma_floor_rad)
+            track = self._track(prev, cur, wheel)
+        delta, sigma = self._increment(wheel, track)
         self._integrate(delta)
         cpu = time.process_time() - t0
-        st = self.stats
-        st.frames += 1
-        st.cpu_time_total_s += cpu
-        st.cpu_time_last_s = cpu
-        if reason is not FallbackReason.NONE:
-            st.deferred += 1
-            st.by_reason[reason.value] = st.by_reason.get(reason.value, 0) + 1
+        self._count(track.fallback, cpu)
         return OdometryUpdate(
             stamp_ns=int(frame.stamp_ns),
             dx_m=float(delta[0]),
             dy_m=float(delta[1]),
             dyaw_rad=float(delta[2]),
             yaw_sigma_rad=float(sigma),
-            fallback=reason,
+            fallback=track.fallback,
             pose=(float(self._pose[0]), float(self._pose[1]), float(self._pose[2])),
-            num_sampled=counts[0],
-            num_far=counts[1],
-            num_matched=counts[2],
-            num_inliers=counts[3],
+            num_sampled=track.num_sampled,
+            num_far=track.num_far,
+            num_matched=track.num_matched,
+            num_inliers=track.num_inliers,
             cpu_time_s=cpu,
         )
 
@@ -457,19 +461,49 @@ class HybridOdometer:
             [pt.parallax_rad(rng, float(sph.theta_of_column(col)), tx, ty) for _, col, rng in kept]
         )
 
-    def _track(
-        self, prev: _Prepared, cur: _Prepared, wheel: FloatArray
-    ) -> tuple[tuple[float, float] | None, FallbackReason, tuple[int, int, int, int]]:
+    def _track(self, prev: _Prepared, cur: _Prepared, wheel: FloatArray) -> _TrackResult:
+        """The visual yaw increment from ``prev`` to ``cur`` (steps 2–5 of the module
+        docstring), or why the frame defers to the wheels."""
         cfg = self.config
         theta_w_rad = float(wheel[2])
-        sph = self.spherical
-        a = sph.a_rad_per_px
-        hw = cfg.patch_width_px // 2
+        a = self.spherical.a_rad_per_px
         shift_cols = theta_w_rad / a
+        # Sample corners where the patches will still be in view (§2.3.2–2.3.3).
+        picks = self._sample(prev, shift_cols)
+        if len(picks) < cfg.min_patches:
+            return _TrackResult(FallbackReason.BLANK_VIEW, num_sampled=len(picks))
+        # The direction of travel in the previous image (the wheels' midpoint heading).
+        travel_col = self.frontal_col - theta_w_rad / (2.0 * a)
+        if cfg.balance_sides:
+            picks = pt.alternate_sides(picks, travel_col)
+        # Keep the first num_patches beyond r_min of (2.3).
+        far, n_sampled = self._far_patches(prev, picks)
+        n_far = len(far)
+        if n_far < cfg.min_patches:
+            return _TrackResult(FallbackReason.NEAR_FEATURES, n_sampled, n_far)
+        # Find each again in the current image.
+        kept, est, sig = self._match(prev, cur, far, shift_cols)
+        n_matched = len(kept)
+        if n_matched < cfg.min_patches:
+            return _TrackResult(FallbackReason.POOR_MATCH, n_sampled, n_far, n_matched)
+        if cfg.parallax_correction:
+            # statistics.median on a handful of floats is ~50x cheaper than np.median.
+            est = est - self._parallax(kept, statistics.median(est.tolist()), wheel)
+        # Cross-validate by vote (§2.3.4) and merge the inliers.
+        inliers = pt.vote(est, a)
+        n_in = int(inliers.sum())
+        if n_in == 0:
+            return _TrackResult(FallbackReason.NO_CONSENSUS, n_sampled, n_far, n_matched)
+        theta_v, sigma = self._merge(kept, est, sig, inliers, travel_col)
+        return _TrackResult(FallbackReason.NONE, n_sampled, n_far, n_matched, n_in, theta_v, sigma)
+
+    def _sample(self, prev: _Prepared, shift_cols: float) -> list[tuple[int, int]]:
+        """Harris corners ``(row, col)`` of the previous spherical image, strongest first."""
+        cfg = self.config
         lo, hi = self._sampling_columns(shift_cols)
-        # Corners in order of strength; candidates beyond the first N stand in for patches
-        # that the range test drops ("any feature closer than r_min is deemed unfit").
-        picks = pt.sample_patches(
+        # Candidates beyond the first N stand in for patches that the range test drops
+        # ("any feature closer than r_min is deemed unfit").
+        return pt.sample_patches(
             prev.spherical,
             lo,
             hi,
@@ -478,62 +512,83 @@ class HybridOdometer:
             cfg.patch_height_px,
             cfg.harris_min_response,
         )
-        if len(picks) < cfg.min_patches:
-            return None, FallbackReason.BLANK_VIEW, (len(picks), 0, 0, 0)
-        # The direction of travel in the previous image (the wheels' midpoint heading).
-        travel_col = self.frontal_col - theta_w_rad / (2.0 * a)
-        if cfg.balance_sides:
-            picks = pt.alternate_sides(picks, travel_col)
-        # Range test (2.3): per-patch stereo in the previous frame's planar pair.
-        intr = self.work_intrinsics
+
+    def _far_patches(
+        self, prev: _Prepared, picks: list[tuple[int, int]]
+    ) -> tuple[list[_Patch], int]:
+        """Range test (2.3), by per-patch stereo in the previous frame's planar pair: the
+        first ``num_patches`` picks beyond ``r_min``, and how many picks were tested."""
         # Range from the pair as it arrived: at 160 px a 50 m feature has under a pixel of
         # disparity, and the parabola pulls such disparities toward whole pixels (ranges too
-        # short, parallax over-corrected); matching a few more pixels costs little. The
-        # window keeps half the working window's angular size to stay cheap.
-        st_scale = prev.stereo[0].shape[1] / intr.width_px
-        far: list[tuple[int, int, float]] = []  # (row, col, horizontal range m)
+        # short, parallax over-corrected); matching a few more pixels costs little.
+        st_scale = prev.stereo[0].shape[1] / self.work_intrinsics.width_px
+        far: list[_Patch] = []
         n_sampled = 0
         for r, c in picks:
-            if len(far) == cfg.num_patches:
+            if len(far) == self.config.num_patches:
                 break
             n_sampled += 1
-            u, v = float(sph.map_u[r, c]), float(sph.map_v[r, c])
-            depth = pt.stereo_range_m(
-                prev.stereo[0],
-                prev.stereo[1],
-                (u + 0.5) * st_scale - 0.5,
-                (v + 0.5) * st_scale - 0.5,
-                intr.fx_px * st_scale,
-                self.mounting.baseline_m,
-                int(round(cfg.stereo_max_disparity_px * st_scale)),
-                max(cfg.stereo_half_width_px, int(round(cfg.stereo_half_width_px * st_scale / 2))),
-                max(
-                    cfg.stereo_half_height_px, int(round(cfg.stereo_half_height_px * st_scale / 2))
-                ),
-                cfg.stereo_min_ncc,
-            )
-            ray_scale = math.sqrt(
-                1.0 + ((u - intr.cx_px) / intr.fx_px) ** 2 + ((v - intr.cy_px) / intr.fy_px) ** 2
-            )
-            theta = abs(float(sph.theta_of_column(c)))
-            r_min = (
-                self.r_min_m
-                if theta <= self.theta_max_rad
-                else pt.r_min_m(cfg.max_travel_m, theta, a)
-            )
-            dist = depth * ray_scale
-            if dist >= r_min:  # NaN (unreliable stereo) compares False: dropped
-                phi = sph.phi_o_rad + a * r
-                # Too little disparity to range: treat as far rather than correct by noise.
-                disparity_px = intr.fx_px * self.mounting.baseline_m / depth
-                ranged = disparity_px >= cfg.parallax_min_disparity_px
-                far.append((r, c, dist * math.cos(phi) if ranged else math.inf))
-        n_far = len(far)
-        if n_far < cfg.min_patches:
-            return None, FallbackReason.NEAR_FEATURES, (n_sampled, n_far, 0, 0)
+            patch = self._ranged_patch(prev, r, c, st_scale)
+            if patch is not None:
+                far.append(patch)
+        return far, n_sampled
+
+    def _ranged_patch(self, prev: _Prepared, r: int, c: int, st_scale: float) -> _Patch | None:
+        """The patch at ``(r, c)`` with its horizontal range, or None when it is nearer than
+        ``r_min`` of (2.3) at its bearing or its stereo is unreliable."""
+        cfg = self.config
+        sph = self.spherical
+        intr = self.work_intrinsics
+        u, v = float(sph.map_u[r, c]), float(sph.map_v[r, c])
+        depth = self._stereo_depth_m(prev, u, v, st_scale)
+        ray_scale = math.sqrt(
+            1.0 + ((u - intr.cx_px) / intr.fx_px) ** 2 + ((v - intr.cy_px) / intr.fy_px) ** 2
+        )
+        theta = abs(float(sph.theta_of_column(c)))
+        r_min = (
+            self.r_min_m
+            if theta <= self.theta_max_rad
+            else pt.r_min_m(cfg.max_travel_m, theta, sph.a_rad_per_px)
+        )
+        dist = depth * ray_scale
+        if not dist >= r_min:  # NaN (unreliable stereo) compares False: dropped
+            return None
+        phi = sph.phi_o_rad + sph.a_rad_per_px * r
+        # Too little disparity to range: treat as far rather than correct by noise.
+        disparity_px = intr.fx_px * self.mounting.baseline_m / depth
+        ranged = disparity_px >= cfg.parallax_min_disparity_px
+        return r, c, dist * math.cos(phi) if ranged else math.inf
+
+    def _stereo_depth_m(self, prev: _Prepared, u: float, v: float, st_scale: float) -> float:
+        """Depth (m) at working-image pixel ``(u, v)`` by stereo matching in ``prev``'s pair,
+        ``st_scale`` times the working resolution; NaN when unreliable."""
+        cfg = self.config
+        intr = self.work_intrinsics
+        # The window keeps half the working window's angular size to stay cheap.
+        return pt.stereo_range_m(
+            prev.stereo[0],
+            prev.stereo[1],
+            (u + 0.5) * st_scale - 0.5,
+            (v + 0.5) * st_scale - 0.5,
+            intr.fx_px * st_scale,
+            self.mounting.baseline_m,
+            int(round(cfg.stereo_max_disparity_px * st_scale)),
+            max(cfg.stereo_half_width_px, int(round(cfg.stereo_half_width_px * st_scale / 2))),
+            max(cfg.stereo_half_height_px, int(round(cfg.stereo_half_height_px * st_scale / 2))),
+            cfg.stereo_min_ncc,
+        )
+
+    def _match(
+        self, prev: _Prepared, cur: _Prepared, far: list[_Patch], shift_cols: float
+    ) -> tuple[list[_Patch], FloatArray, FloatArray]:
+        """NCC search of each patch in the current spherical image (§2.3.3): the patches
+        found with enough correlation, their yaw estimates (rad) and σ (rad)."""
+        cfg = self.config
+        a = self.spherical.a_rad_per_px
+        hw = cfg.patch_width_px // 2
         estimates: list[float] = []
         sigmas: list[float] = []
-        kept: list[tuple[int, int, float]] = []
+        kept: list[_Patch] = []
         for r, c, rng_m in far:
             # Window spans the previous and the wheel-predicted position, plus half a patch
             # on all sides (§2.3.3).
@@ -558,26 +613,51 @@ class HybridOdometer:
             estimates.append(shift_px * a)
             sigmas.append(sigma_px * a)
             kept.append((r, c, rng_m))
-        n_matched = len(estimates)
-        if n_matched < cfg.min_patches:
-            return None, FallbackReason.POOR_MATCH, (n_sampled, n_far, n_matched, 0)
-        est = np.array(estimates)
-        sig = np.array(sigmas)
-        if cfg.parallax_correction:
-            # statistics.median on a handful of floats is ~50x cheaper than np.median.
-            est = est - self._parallax(kept, statistics.median(est.tolist()), wheel)
-        inliers = pt.vote(est, a)
-        n_in = int(inliers.sum())
-        if n_in == 0:
-            return None, FallbackReason.NO_CONSENSUS, (n_sampled, n_far, n_matched, 0)
-        # The inliers agree to within θ_p; weight them by their peak sharpness.
+        return kept, np.array(estimates), np.array(sigmas)
+
+    def _merge(
+        self,
+        kept: list[_Patch],
+        est: FloatArray,
+        sig: FloatArray,
+        inliers: NDArray[np.bool_],
+        travel_col: float,
+    ) -> tuple[float, float]:
+        """The inliers' yaw (rad) and its σ (rad): they agree to within θ_p, so they are
+        weighted by their peak sharpness (and by side of travel with ``balance_sides``)."""
+        cfg = self.config
         w = 1.0 / sig[inliers] ** 2
         if cfg.balance_sides:
             cols_in = np.array([col for _, col, _ in kept])[inliers]
             w = pt.balance_weights(w, cols_in < travel_col)
         theta_v = float(np.sum(w * est[inliers]) / np.sum(w))
-        sigma = pt.merge_sigmas(sig[inliers], cfg.sigma_merge)
-        return (theta_v, sigma), FallbackReason.NONE, (n_sampled, n_far, n_matched, n_in)
+        return theta_v, pt.merge_sigmas(sig[inliers], cfg.sigma_merge)
+
+    def _increment(self, wheel: FloatArray, track: _TrackResult) -> tuple[FloatArray, float]:
+        """The frame's increment ``(dx_m, dy_m, dyaw_rad)`` and its yaw σ (rad): the wheels'
+        when the frame defers to them, else the visual yaw with the translation of (2.4)."""
+        cfg = self.config
+        if track.fallback is not FallbackReason.NONE:
+            return wheel.copy(), cfg.fallback_yaw_sigma_rad
+        theta_v = track.dyaw_rad
+        # (2.4) wants the wheel translation with the wheel's full rotation applied; a wheel
+        # increment in the previous frame follows the midpoint convention (travel along
+        # θ_w/2), so rotate by the other θ_w/2 first.
+        half_w = wheel[2] / 2.0
+        c, s = math.cos(half_w), math.sin(half_w)
+        dp_end = np.array([c * wheel[0] - s * wheel[1], s * wheel[0] + c * wheel[1]])
+        dp = pt.localize(np.zeros(2), theta_v, float(wheel[2]), dp_end)
+        return np.array([dp[0], dp[1], theta_v]), max(track.yaw_sigma_rad, cfg.yaw_sigma_floor_rad)
+
+    def _count(self, fallback: FallbackReason, cpu_s: float) -> None:
+        """Add one frame to :attr:`stats`."""
+        st = self.stats
+        st.frames += 1
+        st.cpu_time_total_s += cpu_s
+        st.cpu_time_last_s = cpu_s
+        if fallback is not FallbackReason.NONE:
+            st.deferred += 1
+            st.by_reason[fallback.value] = st.by_reason.get(fallback.value, 0) + 1
 
     def _integrate(self, delta: FloatArray) -> None:
         x, y, yaw = self._pose
