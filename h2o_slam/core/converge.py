@@ -52,12 +52,14 @@ import numpy as np
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.exact import (
+    MAX_DAMPING,
     ExactSystem,
     WorldLinearization,
     WorldSystem,
     converge_exact,
     next_damping,
     scored_step,
+    settled,
 )
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH
@@ -72,9 +74,6 @@ BACKGROUNDS = ("process", "inline", "off")
 #: STARVED_MIN_S) is starved: idle steps iterate the live map themselves.
 STARVED_FACTOR = 4.0
 STARVED_MIN_S = 0.1
-#: Damping beyond which a live step that still raises χ² means the map is at a minimum
-#: (``damped_step`` gives up after 12 tries from 0: 1e-6 · 10¹¹).
-LIVE_MAX_DAMPING = 1e5
 
 
 @dataclass(frozen=True)
@@ -516,19 +515,19 @@ class LiveIterations:
         m, n = solver.num_edges, solver.num_nodes
         while True:
             if self._world is None:
-                if not _fits(self.system_cost, m, deadline, clock, safety):
+                if not self.system_cost.fits(deadline - clock(), safety, m):
                     return
                 begin = clock()
                 self._world = self.system.system()
                 self.system_cost.update(clock() - begin, m)
             elif self._lin is None:
-                if not _fits(self.lin_cost, m, deadline, clock, safety):
+                if not self.lin_cost.fits(deadline - clock(), safety, m):
                     return
                 begin = clock()
                 self._lin = self.system.linearize(self._world)
                 self.lin_cost.update(clock() - begin, m)
             elif self._trial is None:
-                if not _fits(self.solve_cost, m, deadline, clock, safety):
+                if not self.solve_cost.fits(deadline - clock(), safety, m):
                     return
                 begin = clock()
                 first = not self._lin.system.factor_ready
@@ -538,11 +537,11 @@ class LiveIterations:
                     # too (intel: 2.9 ms against 1.0): as a sample it would keep every
                     # later solve from fitting, and none would run to correct it.
                     self.solve_cost.update(clock() - begin, m)
-                if self.damping > LIVE_MAX_DAMPING:  # no step helps: at a minimum
+                if self.damping > MAX_DAMPING:  # no step helps: at a minimum
                     self._settle(key)
                     return
             else:
-                if not _fits(self.take_cost, n, deadline, clock, safety):
+                if not self.take_cost.fits(deadline - clock(), safety, n):
                     return
                 begin = clock()
                 solver.tree.set_world_poses(self._trial.R, self._trial.x)
@@ -550,8 +549,7 @@ class LiveIterations:
                 self.iterations += 1
                 before, self._lin, self._trial = self._lin.chi2, self._trial, None
                 # converge_exact's test, so that the iterations are its own
-                if before - self._lin.chi2 <= solver.config.exact_tolerance * max(
-                        before, 1e-300):
+                if settled(before, self._lin.chi2, solver.config.exact_tolerance):
                     self._settle(key)
                     return
 
@@ -577,10 +575,6 @@ class LiveIterations:
 #: World poses this close (metres, and rotation-matrix entries) to a linearization's are the
 #: same poses: a re-parenting recomposes them to within rounding.
 POSE_KEPT_M = 1e-9
-
-
-def _fits(cost: CostModel, size: float, deadline: float, clock: Any, safety: float) -> bool:
-    return cost.predict(size) * cost.margin(safety) <= deadline - clock()
 
 
 class Converger:

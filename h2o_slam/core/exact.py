@@ -195,6 +195,17 @@ def scored_step(system: ExactSystem, lin: WorldLinearization, damping: float
     return new if np.isfinite(new.chi2) and new.chi2 <= lin.chi2 else None
 
 
+#: Damping beyond which a step that still raises χ² means the estimate is at a minimum
+#: (``damped_step`` gives up after 12 tries from 0: 1e-6 · 10¹¹).
+MAX_DAMPING = 1e5
+
+
+def settled(before: float, after: float, tolerance: float) -> bool:
+    """A step from χ² ``before`` to ``after`` lowered it by no more than ``tolerance`` of
+    it: :func:`converge_exact`'s test of convergence."""
+    return before - after <= tolerance * max(before, 1e-300)
+
+
 def next_damping(damping: float, accepted: bool) -> float:
     """Levenberg's schedule: a tenth after a step that helped (none once it is negligible),
     ten times (at least 1e-6) after one that did not."""
@@ -222,7 +233,7 @@ def converge_exact(solver: H2OSolver, iterations: int) -> tuple[list[float], boo
             return history, True
         damping = damping_next
         history.append(lin.chi2)
-        if current - lin.chi2 <= tol * max(current, 1e-300):
+        if settled(current, lin.chi2, tol):
             return history, True
     return history, False
 

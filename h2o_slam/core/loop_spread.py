@@ -28,7 +28,14 @@ from typing import Any
 import numpy as np
 
 from h2o_slam.core import geometry as geo
-from h2o_slam.core.exact import ExactSystem, WorldSystem, next_damping, scored_step
+from h2o_slam.core.exact import (
+    MAX_DAMPING,
+    ExactSystem,
+    WorldSystem,
+    next_damping,
+    scored_step,
+    settled,
+)
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import PoseGraph
 from h2o_slam.core.solver import H2OSolver
@@ -271,7 +278,7 @@ class LoopSolve:
         damping, converged = 0.0, False
         tol = solver.config.exact_tolerance
         for i in range(LOOP_ITERATIONS):
-            if i and not _fits(self.iteration_cost, work, deadline, clock, safety):
+            if i and not self.iteration_cost.fits(deadline - clock(), safety, work):
                 break
             new = scored_step(es, lin, damping)
             damping = next_damping(damping, new is not None)
@@ -281,7 +288,7 @@ class LoopSolve:
             if new is None:
                 converged = damping > MAX_DAMPING  # no step helps: at the minimum
             else:
-                converged = lin.chi2 - new.chi2 <= tol * max(lin.chi2, 1e-300)
+                converged = settled(lin.chi2, new.chi2, tol)
                 lin = new
             if converged:
                 break
@@ -290,10 +297,3 @@ class LoopSolve:
         solver.tree.set_world_poses(lin.R, lin.x)
         return True, converged
 
-
-#: Damping beyond which no step of a loop solve helps (12 refusals from 1e-6).
-MAX_DAMPING = 1e5
-
-
-def _fits(cost: CostModel, work: int, deadline: float, clock: Any, safety: float) -> bool:
-    return clock() + cost.predict(work) * cost.margin(safety) <= deadline

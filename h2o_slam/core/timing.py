@@ -91,6 +91,10 @@ class CostModel:
         self.coef = np.maximum(coef, 0.1 * self.prior)
         self.samples += 1
 
+    def fits(self, remaining_s: float, safety: float, *sizes: float) -> bool:
+        """Work of these sizes, with its :meth:`margin`, fits in ``remaining_s`` seconds."""
+        return self.predict(*sizes) * self.margin(safety) <= remaining_s
+
     def margin(self, safety: float) -> float:
         """What predictions are multiplied by: the larger of ``safety`` and the observed
         :attr:`spread`."""

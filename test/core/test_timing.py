@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from h2o_slam.core.timing import CallbackTimes, CostShare, InputHealth
+from h2o_slam.core.timing import CallbackTimes, CostModel, CostShare, InputHealth
 
 
 def test_summary_counts_overruns_against_the_budget_in_force() -> None:
@@ -73,3 +73,10 @@ def test_cost_share_stretches_the_period_of_costly_work() -> None:
     assert share.runs == 2 and share.last_cost_s == 0.5
     with pytest.raises(ValueError, match="share"):
         CostShare(period_s=1.0, share=0.0)
+
+
+def test_work_fits_when_its_prediction_with_margin_does() -> None:
+    model = CostModel((1e-3, 1e-6), (1000.0,))
+    need = model.predict(500.0) * model.margin(1.5)  # 1.5 ms × 1.5
+    assert model.fits(need, 1.5, 500.0)
+    assert not model.fits(0.99 * need, 1.5, 500.0)
