@@ -616,7 +616,9 @@ def publish_realtime(bag: Path, topics: dict[str, str | None], rate: float,
     """Publish the mapped topics at the recorded pace (``rate`` × real time).
 
     Every publisher exists ``delay_s`` before the first message, so that subscribers
-    already running have matched them (DDS drops what is published before a match).
+    already running have matched them (DDS drops what is published before a match), and
+    up to ``delay_s`` longer while one has no subscriber yet: on a busy machine discovery
+    can take longer than the delay.
     """
     if not rate > 0.0:
         raise ReplayError("--rate", f"must be > 0, got {rate}")
@@ -633,6 +635,7 @@ def publish_realtime(bag: Path, topics: dict[str, str | None], rate: float,
                                              100)
                 for topic in reader.stats.roles.values()}
             time.sleep(delay_s)
+            _await_subscribers(list(publishers.values()), delay_s)
             wall0, bag0 = time.monotonic(), None
             for item in reader.messages():
                 bag0 = item.stamp_ns if bag0 is None else bag0
@@ -646,6 +649,14 @@ def publish_realtime(bag: Path, topics: dict[str, str | None], rate: float,
         node.destroy_node()
         rclpy.try_shutdown(context=context)
     return 0
+
+
+def _await_subscribers(publishers: list[Any], timeout_s: float) -> None:
+    """Until every publisher has matched a subscriber, at most ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while (any(p.get_subscription_count() == 0 for p in publishers)
+           and time.monotonic() < deadline):
+        time.sleep(0.05)
 
 
 def _message_class(type_name: str) -> Any:

@@ -33,7 +33,7 @@ from h2o_slam.core.robust import (
     RobustConfig,
     chordal_restart,
     converge_robust,
-    edge_thresholds,
+    decided_thresholds,
     lago_restart,
     odometry_edges,
     tls_cost,
@@ -267,14 +267,20 @@ def solve_exact(
         return _exact_result(solver, start, history, converged, None)
     starts = [init] if init != "tree" else (
         ["tree", "lago"] if graph.planar and not _has_global(graph) else ["tree"])
-    best: tuple[float, SolveResult] | None = None
-    for name in starts:
-        result = _solve_robust(graph, iterations, config, name, robust)
-        cost = robust_cost(graph, result.R, result.t, robust)
-        if best is None or cost < best[0]:
-            best = (cost, result)
-    assert best is not None
-    return best[1]
+    results = [_solve_robust(graph, iterations, config, name, robust) for name in starts]
+    trusted = odometry_edges(graph.kind, graph.a, graph.b)
+    r2 = [edge_chi2(graph, result.R, result.t) for result in results]
+    # Scored at the tightest thresholds either answer's accepted closures allow: at its
+    # own, an answer that kept a false closure its tail would refuse scores lower.
+    c2 = np.min([decided_thresholds(graph, trusted, robust, _weights(result), r)
+                 for result, r in zip(results, r2, strict=True)], axis=0)
+    costs = [tls_cost(r, ~trusted, c2) for r in r2]
+    return results[int(np.argmin(costs))]
+
+
+def _weights(result: SolveResult) -> Array:
+    assert result.weights is not None, "a robust solve sets every edge's weight"
+    return result.weights
 
 
 def _solve_robust(graph: PoseGraph, iterations: int, config: SolverConfig | None, init: str,
@@ -297,13 +303,6 @@ def _exact_result(solver: H2OSolver, start: PoseGraph, history: list[float], con
         result.init = robust_init
     result.R, result.t = solver.world_poses()
     return result
-
-
-def robust_cost(graph: PoseGraph, R: Array, t: Array, robust: RobustConfig) -> float:
-    """The TLS cost the robust solve minimizes, of ``graph`` at ``(R, t)``: odometry's χ²
-    plus each other edge's χ², at most its threshold."""
-    trusted = odometry_edges(graph.kind, graph.a, graph.b)
-    return tls_cost(edge_chi2(graph, R, t), ~trusted, edge_thresholds(graph, trusted, robust))
 
 
 def _has_global(graph: PoseGraph) -> bool:

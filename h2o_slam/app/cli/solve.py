@@ -52,8 +52,11 @@ from h2o_slam.core.robust import (
     EdgeState,
     RobustConfig,
     closure_noise_scale,
+    decided_thresholds,
     edge_states,
+    loop_closures,
     odometry_edges,
+    thresholds,
 )
 from h2o_slam.core.solver import SolverConfig
 from h2o_slam.core.warmup import warm_up
@@ -279,16 +282,20 @@ def _robust_summary(graph: PoseGraph, result: SolveResult) -> dict[str, Any] | N
     states = edge_states(result.weights, trusted)
     kept = result.weights > 0.5
     config = RobustConfig()
-    noise = closure_noise_scale(graph, trusted)
+    r2 = edge_chi2(graph, result.R, result.t)
+    used = decided_thresholds(graph, trusted, config, result.weights, r2)
+    plain = thresholds(graph.kind, graph.planar, config.inlier_probability)
+    closures = loop_closures(graph.kind, trusted)
     return {
         "method": "gnc-tls", "inlier_probability": config.inlier_probability,
-        "closure_noise_scale": noise,
-        "closure_threshold_scale": min(1.0, config.noise_margin * noise),
+        "closure_noise_scale": closure_noise_scale(graph, trusted),
+        "closure_threshold_scale": float(np.min(used[closures] / plain[closures],
+                                                initial=1.0)),
         "weighed": int(np.count_nonzero(~trusted)),
         "accepted": int(np.count_nonzero(states == EdgeState.ACCEPTED)),
         "dropped": int(np.count_nonzero(states == EdgeState.DROPPED)),
         "dropped_edges": np.flatnonzero(states == EdgeState.DROPPED).tolist(),
-        "chi2_accepted": float(np.sum(edge_chi2(graph, result.R, result.t)[kept])),
+        "chi2_accepted": float(np.sum(r2[kept])),
     }
 
 
