@@ -92,7 +92,12 @@ def stale(root: Path = ROOT) -> list[Path]:
 
 
 def main() -> int:
-    """Write every stale file again; prints the ones written."""
+    """Write every stale file again; prints the ones written. Run in a source checkout
+    (an installed copy has no ``doc/``): exit code 1 elsewhere."""
+    if not (ROOT / PAGE).is_file():
+        print(f"parameter_files: no {PAGE} under {ROOT}: run it in a source checkout",
+              file=sys.stderr)
+        return 1
     for path, text in written().items():
         target = ROOT / path
         if target.read_text(encoding="utf-8") != text:
