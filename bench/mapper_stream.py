@@ -77,8 +77,8 @@ def stream_graph(graph: PoseGraph, budget_ms: float = 5.0, idle_s: float = 1.0,
     """Feed ``graph`` (planar) through a :class:`Mapper`; see the module docstring."""
     poses = odometry_poses(graph)
     odometry = odometry_edges(graph.kind, graph.a, graph.b)
-    config = MapperConfig(keyframe_distance_m=0.0, keyframe_angle_rad=0.0,
-                          keyframe_period_s=0.5, budget_ms=budget_ms, background=background)
+    config = MapperConfig(keyframe_distance=0.0, keyframe_angle=0.0,
+                          keyframe_period=0.5, budget_ms=budget_ms, background=background)
     mapper = Mapper(config)
     mapped = np.full(graph.num_edges, -1)
     times = []

@@ -92,7 +92,8 @@ def reason_key(source: str, error: Exception) -> str:
 
 @dataclass(frozen=True)
 class FrontendConfig:
-    """Settings of :class:`VoFrontend` (the node declares each one as a parameter).
+    """Settings of :class:`VoFrontend`; the node declares each documented field as a
+    parameter (``metadata``: :mod:`ros_node_base.params`), the odometer's as ``odometer.*``.
 
     Attributes:
         camera_yaw, camera_pitch, camera_roll: left camera mounting on ``base_link`` (rad;
@@ -108,16 +109,33 @@ class FrontendConfig:
         odometer: the hybrid odometer's own settings.
     """
 
-    camera_yaw: float = 0.0
-    camera_pitch: float = 0.0
-    camera_roll: float = 0.0
-    camera_height: float = 1.0
-    camera_forward: float = 0.0
-    camera_left: float = 0.0
-    wheel_buffer: float = 5.0
-    max_pending_frames: int = 10
-    wheel_sigma_per_m: float = 0.02
-    initial_sigma: float = 1e-3
+    camera_yaw: float = field(default=0.0, metadata={
+        "doc": "Left camera yaw on base_link, rad (positive: turned left).",
+        "range": (-math.pi, math.pi)})
+    camera_pitch: float = field(default=0.0, metadata={
+        "doc": "Left camera pitch, rad (REP-103: positive tilts down).", "range": (-1.5, 1.5)})
+    camera_roll: float = field(default=0.0, metadata={
+        "doc": "Left camera roll about its forward axis, rad (positive rolls it right).",
+        "range": (-1.5, 1.5)})
+    camera_height: float = field(default=1.0, metadata={
+        "doc": "Height of the left optical centre above the ground, m.", "range": (0.01, 100.0)})
+    camera_forward: float = field(default=0.0, metadata={
+        "doc": "Left optical centre ahead of base_link, m.", "range": (-100.0, 100.0)})
+    camera_left: float = field(default=0.0, metadata={
+        "doc": "Left optical centre left of base_link, m.", "range": (-100.0, 100.0)})
+    wheel_buffer: float = field(default=5.0, metadata={
+        "doc": "Seconds of wheel odometry kept to interpolate the wheel pose at frame stamps.",
+        "range": (0.1, 600.0)})
+    max_pending_frames: int = field(default=10, metadata={
+        "doc": "Stereo frames that may wait for wheel odometry to reach their stamp; beyond "
+               "that the oldest is dropped and counted (rejected.frame_wheel_timeout).",
+        "range": (1, 1000)})
+    wheel_sigma_per_m: float = field(default=0.02, metadata={
+        "doc": "Wheel translation noise, 1 sigma per metre travelled (along and across); the "
+               "published x/y covariance grows with it.", "range": (1e-6, 1.0)})
+    initial_sigma: float = field(default=1e-3, metadata={
+        "doc": "1 sigma of the first pose (m, rad); keeps the covariance invertible.",
+        "range": (1e-9, 10.0)})
     odometer: OdometerConfig = field(default_factory=OdometerConfig)
 
     def __post_init__(self) -> None:

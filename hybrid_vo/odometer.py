@@ -55,7 +55,9 @@ class FallbackReason(enum.Enum):
 
 @dataclass(frozen=True)
 class OdometerConfig:
-    """Parameters of the hybrid odometer; defaults follow the thesis (§2.3–2.4).
+    """Parameters of the hybrid odometer; defaults follow the thesis (§2.3–2.4). The node
+    declares each documented field as ``odometer.<name>`` (``metadata``:
+    :mod:`ros_node_base.params`).
 
     Attributes:
         work_width_px: images are downsampled to this width (thesis: 160); the height keeps
@@ -65,7 +67,7 @@ class OdometerConfig:
         band_half_height_rad: the spherical image covers this much pitch above and below
             the horizon.
         theta_max_rad: half-width of the sampling region about the frontal direction;
-            None derives it from the mounting as the thesis does (the bearing of the image
+            0 derives it from the mounting as the thesis does (the bearing of the image
             side nearest to the frontal direction, less half a patch), capped at
             ``theta_max_cap_rad``.
         max_speed_m_s, frame_rate_hz: give ``d = max_speed / frame_rate``, the largest travel
@@ -101,32 +103,66 @@ class OdometerConfig:
             frame (:func:`hybrid_vo.patches.track_patch`); False uses the forward parabola.
     """
 
-    work_width_px: int = 160
-    num_patches: int = 6
-    patch_width_px: int = 13
-    patch_height_px: int = 3
-    band_half_height_rad: float = 0.1
-    theta_max_rad: float | None = None
+    work_width_px: int = field(default=160, metadata={
+        "doc": "Images are downsampled to this width (the height keeps the aspect ratio). "
+               "Thesis: 160 (160x120 for a 4:3 camera).", "range": (32, 4096)})
+    num_patches: int = field(default=6, metadata={
+        "doc": "Patches tracked per frame. Thesis: 6.", "range": (1, 64)})
+    patch_width_px: int = field(default=13, metadata={
+        "doc": "Patch width in spherical pixels, odd. Thesis: 13.", "range": (3, 63)})
+    patch_height_px: int = field(default=3, metadata={
+        "doc": "Patch height in spherical pixels, odd. Thesis: 3.", "range": (3, 63)})
+    band_half_height_rad: float = field(default=0.1, metadata={
+        "doc": "The horizon band covers this pitch above and below the horizon, rad.",
+        "range": (0.01, 0.8)})
+    theta_max_rad: float = field(default=0.0, metadata={
+        "doc": "Half-width of the patch sampling region about straight ahead, rad; 0 derives "
+               "it from the mounting as the thesis does (capped at 0.14).",
+        "range": (0.0, 1.5)})
     theta_max_cap_rad: float = 0.14
-    max_speed_m_s: float = 1.3
-    frame_rate_hz: float = 10.0
+    max_speed_m_s: float = field(default=1.3, metadata={
+        "doc": "Largest robot speed, m/s; with frame_rate_hz it gives the travel between "
+               "frames of the range test (2.3), which drops features nearer than r_min.",
+        "range": (0.01, 50.0)})
+    frame_rate_hz: float = field(default=10.0, metadata={
+        "doc": "Camera frame rate, Hz.", "range": (0.1, 200.0)})
     candidate_factor: int = 3
-    min_patches: int = 3
-    min_ncc: float = 0.75
+    min_patches: int = field(default=3, metadata={
+        "doc": "Fewer usable patches than this and the frame uses wheel odometry (at most "
+               "num_patches).", "range": (1, 64)})
+    min_ncc: float = field(default=0.75, metadata={
+        "doc": "A patch match below this normalized cross-correlation is discarded.",
+        "range": (-0.99, 0.99)})
     harris_min_response: float = 1e-5
     stereo_max_disparity_px: int = 40
     stereo_min_ncc: float = 0.6
     stereo_half_width_px: int = 4
     stereo_half_height_px: int = 2
-    fallback_yaw_sigma_rad: float = 0.02
+    fallback_yaw_sigma_rad: float = field(default=0.02, metadata={
+        "doc": "Yaw sigma given to a frame that uses wheel odometry, rad.",
+        "range": (1e-6, 1.0)})
     yaw_sigma_floor_rad: float = 1e-4
-    sigma_merge: Literal["thesis", "inverse_variance"] = "thesis"
-    parallax_correction: bool = True
-    balance_sides: bool = True
-    parallax_min_disparity_px: float = 0.0
-    symmetric_subpixel: bool = True
-    stereo_at_input_resolution: bool = True
-    match_blur_px: float = 1.0
+    sigma_merge: Literal["thesis", "inverse_variance"] = field(default="thesis", metadata={
+        "doc": "How the patches' yaw sigmas combine: thesis (as printed) or inverse_variance."})
+    parallax_correction: bool = field(default=True, metadata={
+        "doc": "Beyond the thesis: remove from each patch the parallax predicted from the "
+               "wheel travel and its stereo range."})
+    balance_sides: bool = field(default=True, metadata={
+        "doc": "Beyond the thesis: take patches from both sides of the direction of travel, "
+               "equally weighted."})
+    parallax_min_disparity_px: float = field(default=0.0, metadata={
+        "doc": "Patches with less stereo disparity are taken as infinitely far, px.",
+        "range": (0.0, 100.0)})
+    symmetric_subpixel: bool = field(default=True, metadata={
+        "doc": "Beyond the thesis: average the forward match with a match back from the "
+               "current frame."})
+    stereo_at_input_resolution: bool = field(default=True, metadata={
+        "doc": "Beyond the thesis: range patches on the stereo pair as it arrives, not the "
+               "downsampled one."})
+    match_blur_px: float = field(default=1.0, metadata={
+        "doc": "Beyond the thesis: Gaussian blur (sigma, spherical px) before corners and "
+               "NCC; 0 disables (all four options off and this 0 is the thesis algorithm).",
+        "range": (0.0, 10.0)})
 
     def __post_init__(self) -> None:
         def positive(name: str) -> None:
@@ -150,8 +186,8 @@ class OdometerConfig:
             "yaw_sigma_floor_rad",
         ):
             positive(name)
-        if self.theta_max_rad is not None:
-            positive("theta_max_rad")
+        if not (math.isfinite(self.theta_max_rad) and self.theta_max_rad >= 0.0):
+            raise ConfigError(f"theta_max_rad must be finite and >= 0, got {self.theta_max_rad!r}")
         for name in ("patch_width_px", "patch_height_px"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 3 or value % 2 == 0:
@@ -313,7 +349,7 @@ class HybridOdometer:
         self.frontal_col = float(sph.column_of_theta(0.0))
         half_patch_rad = (cfg.patch_width_px // 2) * sph.a_rad_per_px
         nearest_side_rad = min(self.frontal_col, cols - 1 - self.frontal_col) * sph.a_rad_per_px
-        if cfg.theta_max_rad is None:
+        if cfg.theta_max_rad == 0.0:  # the thesis' choice, from the mounting
             theta_max = min(nearest_side_rad - half_patch_rad, cfg.theta_max_cap_rad)
         else:
             theta_max = cfg.theta_max_rad

@@ -30,7 +30,8 @@ SIDE_NAMES = ("left", "right")
 
 @dataclass(frozen=True)
 class SyncConfig:
-    """Stereo synchronizer settings.
+    """Stereo synchronizer settings (each field's ``metadata`` describes it as the node's
+    parameter: :mod:`ros_node_base.params`).
 
     Attributes:
         approx_sync: pair nearest stamps (True) or equal stamps only (False).
@@ -38,9 +39,16 @@ class SyncConfig:
         sync_queue_size: unpaired messages kept per side.
     """
 
-    approx_sync: bool = True
-    approx_sync_max_interval: float = 0.02
-    sync_queue_size: int = 10
+    approx_sync: bool = field(default=True, metadata={
+        "doc": "Pair left and right images by nearest stamp (true) or by equal stamps only "
+               "(false)."})
+    approx_sync_max_interval: float = field(default=0.02, metadata={
+        "doc": "Largest left/right stamp difference of a pair, s; approx_sync only. Keep it "
+               "below half the frame period (0.05 s at 10 Hz).",
+        "range": (0.0, 1.0)})
+    sync_queue_size: int = field(default=10, metadata={
+        "doc": "Unpaired images kept per side before the oldest is dropped.",
+        "range": (1, 100)})
 
     def __post_init__(self) -> None:
         interval = self.approx_sync_max_interval

@@ -8,7 +8,7 @@ Inputs (relative names, remappable): ``left/image_rect``, ``right/image_rect``
 ``use_compressed``; best effort), ``left/camera_info``, ``right/camera_info`` (best effort)
 and wheel ``odom`` (``nav_msgs/Odometry``, reliable), queues :data:`CAMERA_QUEUE_DEPTH` and
 :data:`ODOM_QUEUE_DEPTH` deep. What became of each input's messages is counted
-(:mod:`h2o_slam.ros.inputs`).
+(:mod:`ros_node_base.inputs`).
 
 Outputs: ``odometry/hybrid`` (``nav_msgs/Odometry``, ``odom_frame`` → ``base_frame``),
 ``/tf`` (``odom_frame`` → ``base_frame``, with ``publish_tf``), ``~/debug_image`` (mono8
@@ -17,9 +17,10 @@ Services: ``~/reset`` (``std_srvs/Trigger``) and ``~/pause`` (``std_srvs/SetBool
 pauses).
 
 No input ends the node: every subscription callback, the timer and both services run
-inside one boundary (:meth:`HybridVoNode._guarded`, :meth:`HybridVoNode._boundary`) that
-turns any exception into a logged rejection counted by reason in ``/diagnostics``
+behind the boundary of the shell both nodes share (:class:`ros_node_base.node.NodeBase`),
+which turns any exception into a logged rejection counted by reason in ``/diagnostics``
 (``rejected.<source>: unexpected <Type>`` for anything but the package's own errors).
+Parameters come from one typed tree, :class:`hybrid_vo.node_config.VoNodeConfig`.
 
 For replay, every subscription callback is a public ``on_*`` method that accepts rclpy
 messages and messages deserialized by rosbags alike, and every publication goes through
@@ -29,45 +30,36 @@ Output stamps are message stamps, never the wall clock.
 
 from __future__ import annotations
 
-import math
 import sys
-import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TransformStamped
 from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import ParameterException
-from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_srvs.srv import SetBool, Trigger
 
 import msg_adapters as ma
 from h2o_slam.core.errors import InputError
-from h2o_slam.ros.boundary import behind_boundary
-from h2o_slam.ros.inputs import InputCounts, counted_subscription
-from h2o_slam.ros.node_main import run_node
 from hybrid_vo.errors import HybridVOError
 from hybrid_vo.frontend import (
     BAD_IMAGE,
     NO_CALIBRATION,
-    FrontendConfig,
     InputRejected,
     VoFrontend,
     VoOutput,
     reason_key,
 )
-from hybrid_vo.odometer import OdometerConfig
-from hybrid_vo.sync import LEFT, RIGHT, SIDE_NAMES, StarvationMonitor, StereoSync, SyncConfig
+from hybrid_vo.node_config import VoNodeConfig
+from hybrid_vo.sync import LEFT, RIGHT, SIDE_NAMES, StarvationMonitor, StereoSync
+from ros_node_base.main import run_node
+from ros_node_base.node import NodeBase
 
 NODE_NAME = "hybrid_vo_node"
-#: Seconds between two log lines about the same problem.
-LOG_THROTTLE_S = 5.0
 NS_PER_S = 1_000_000_000
 #: Queue depth of the wheel odometry (reliable): 10 s at 100 Hz, what a stall of the node
 #: (a slow first frame) leaves waiting; every sample is needed for the track.
@@ -77,146 +69,12 @@ ODOM_QUEUE_DEPTH = 1000
 #: wheels carry it; every loss is counted (input.<topic>.dropped).
 CAMERA_QUEUE_DEPTH = 10
 
-Sink = Callable[[str, Any], None]
 
-
-@dataclass(frozen=True)
-class ParamSpec:
-    """One declared parameter: name, default, description and range (``None``: no range)."""
-
-    name: str
-    default: bool | int | float | str
-    description: str
-    low: float | None = None
-    high: float | None = None
-
-
-def _frontend(name: str, description: str, low: float, high: float) -> ParamSpec:
-    """A parameter of :class:`FrontendConfig`, its default taken from there."""
-    return ParamSpec(name, getattr(FrontendConfig(), name), description, low, high)
-
-
-def _odometer(name: str, description: str, low: float | None = None,
-              high: float | None = None) -> ParamSpec:
-    """``odometer.<name>`` of :class:`OdometerConfig`, its default taken from there."""
-    value = getattr(OdometerConfig(), name)
-    return ParamSpec(f"odometer.{name}", 0.0 if value is None else value, description, low,
-                     high)
-
-
-#: Every parameter of the node, in the order of ``config/hybrid_vo.yaml``. Defaults come from
-#: the cores' config dataclasses.
-PARAMETERS: tuple[ParamSpec, ...] = (
-    ParamSpec("odom_frame", "odom", "frame of the published pose (REP-105 odom)"),
-    ParamSpec("base_frame", "base_link", "frame whose pose is published (child frame)"),
-    ParamSpec("publish_tf", True, "publish odom_frame -> base_frame on /tf"),
-    ParamSpec("use_compressed", False,
-              "subscribe to sensor_msgs/CompressedImage on <image topic>/compressed"),
-    ParamSpec("publish_debug_image", False,
-              "publish ~/debug_image: the horizon band (mono8) with the sampled patches"),
-    ParamSpec("debug_image_scale", 4, "enlargement of the debug image", 1, 16),
-    ParamSpec("diagnostics_period", 1.0,
-              "seconds of message time between /diagnostics reports", 0.1, 60.0),
-    ParamSpec("starvation_timeout", 2.0,
-              "seconds of silence on an input (while others arrive) before a warning",
-              0.1, 60.0),
-    ParamSpec("approx_sync", True,
-              "pair left/right images by nearest stamp (false: equal stamps only)"),
-    ParamSpec("approx_sync_max_interval", SyncConfig().approx_sync_max_interval,
-              "largest left/right stamp difference of a pair, s (keep below half the "
-              "frame period)", 0.0, 1.0),
-    ParamSpec("sync_queue_size", SyncConfig().sync_queue_size,
-              "unpaired images kept per side", 1, 100),
-    _frontend("camera_yaw", "left camera yaw on base_link, rad (positive: turned left)",
-              -math.pi, math.pi),
-    _frontend("camera_pitch", "left camera pitch, rad (REP-103: positive tilts down)",
-              -1.5, 1.5),
-    _frontend("camera_roll", "left camera roll about its forward axis, rad", -1.5, 1.5),
-    _frontend("camera_height", "height of the left optical centre above the ground, m",
-              0.01, 100.0),
-    _frontend("camera_forward", "left optical centre ahead of base_link, m", -100.0, 100.0),
-    _frontend("camera_left", "left optical centre left of base_link, m", -100.0, 100.0),
-    _frontend("wheel_buffer", "seconds of wheel odometry kept for interpolation at frame "
-              "stamps", 0.1, 600.0),
-    _frontend("max_pending_frames", "stereo frames that may wait for wheel odometry to reach "
-              "their stamp", 1, 1000),
-    _frontend("wheel_sigma_per_m", "wheel translation noise, 1 sigma per metre travelled",
-              1e-6, 1.0),
-    _frontend("initial_sigma", "1 sigma of the first pose (m, rad)", 1e-9, 10.0),
-    _odometer("work_width_px", "images are downsampled to this width (height keeps the "
-              "aspect ratio); thesis: 160", 32, 4096),
-    _odometer("num_patches", "patches tracked per frame (thesis: 6)", 1, 64),
-    _odometer("patch_width_px", "patch width in spherical pixels, odd (thesis: 13)", 3, 63),
-    _odometer("patch_height_px", "patch height in spherical pixels, odd (thesis: 3)", 3, 63),
-    _odometer("min_patches", "fewer usable patches -> the frame uses wheel odometry", 1, 64),
-    _odometer("band_half_height_rad", "the horizon band covers this pitch above and below "
-              "the horizon, rad", 0.01, 0.8),
-    _odometer("theta_max_rad", "half-width of the patch sampling region, rad; 0: from the "
-              "mounting", 0.0, 1.5),
-    _odometer("max_speed_m_s", "largest robot speed, m/s (with frame_rate_hz: the r_min "
-              "range test)", 0.01, 50.0),
-    _odometer("frame_rate_hz", "camera frame rate, Hz", 0.1, 200.0),
-    _odometer("min_ncc", "a patch match below this normalized cross-correlation is "
-              "discarded", -0.99, 0.99),
-    _odometer("fallback_yaw_sigma_rad", "yaw sigma of a frame that uses wheel odometry, rad",
-              1e-6, 1.0),
-    _odometer("sigma_merge", "how patch yaw sigmas combine: thesis or inverse_variance"),
-    _odometer("parallax_correction", "remove from each patch the parallax predicted from "
-              "the wheel travel and its stereo range (beyond the thesis)"),
-    _odometer("balance_sides", "take patches from both sides of the direction of travel, "
-              "equally weighted (beyond the thesis)"),
-    _odometer("parallax_min_disparity_px", "patches with less disparity are taken as "
-              "infinitely far, px", 0.0, 100.0),
-    _odometer("symmetric_subpixel", "average the forward match with a match back from the "
-              "current frame (beyond the thesis)"),
-    _odometer("stereo_at_input_resolution", "range patches on the stereo pair as it "
-              "arrives, not the downsampled one"),
-    _odometer("match_blur_px", "Gaussian blur (sigma, spherical px) before corners and "
-              "NCC; 0 disables", 0.0, 10.0),
-)
-
-
-def _descriptor(spec: ParamSpec) -> ParameterDescriptor:
-    desc = ParameterDescriptor(description=spec.description, read_only=True)
-    if spec.low is None or spec.high is None:
-        return desc
-    if isinstance(spec.default, int) and not isinstance(spec.default, bool):
-        desc.integer_range = [IntegerRange(from_value=int(spec.low), to_value=int(spec.high),
-                                           step=1)]
-    else:
-        desc.floating_point_range = [FloatingPointRange(from_value=float(spec.low),
-                                                        to_value=float(spec.high), step=0.0)]
-    return desc
-
-
-def frontend_config(values: dict[str, Any]) -> FrontendConfig:
-    """The :class:`FrontendConfig` of parameter values by name (odometer ones dotted).
-
-    Raises:
-        ConfigError: values the cores refuse.
-    """
-    odometer = {
-        f.name: values[f"odometer.{f.name}"]
-        for f in fields(OdometerConfig)
-        if f"odometer.{f.name}" in values
-    }
-    if odometer.get("theta_max_rad") == 0.0:
-        odometer["theta_max_rad"] = None  # 0 asks for the thesis' choice from the mounting
-    front = {f.name: values[f.name] for f in fields(FrontendConfig) if f.name in values}
-    return FrontendConfig(**front, odometer=OdometerConfig(**odometer))
-
-
-def _tf_message_class() -> Any:
-    """``tf2_msgs/TFMessage``, or None when tf2_msgs is not installed."""
-    try:
-        from tf2_msgs.msg import TFMessage
-    except ImportError:
-        return None
-    return TFMessage
-
-
-class HybridVoNode(Node):
+class HybridVoNode(NodeBase[VoNodeConfig]):
     """Stereo images + camera info + wheel odometry in, corrected odometry out.
+
+    Parameters, the boundary, the input counts and the outputs are the shell's
+    (:class:`ros_node_base.node.NodeBase`); :attr:`config` is a :class:`VoNodeConfig`.
 
     Args:
         node_name: the node's name (``hybrid_vo_node``; tests give unique ones).
@@ -224,49 +82,36 @@ class HybridVoNode(Node):
             ``parameter_overrides``, ``cli_args``, ...).
 
     Attributes:
-        sink: callable ``(topic, msg)`` that also receives every published message, or None.
         frontend: the odometry logic (counters in ``frontend.stats``).
         sync: the stereo synchronizer.
         monitor: the starvation watchdog.
     """
 
+    expected_errors = (InputError, HybridVOError)
+
     def __init__(self, node_name: str = NODE_NAME, **kwargs: Any) -> None:
-        super().__init__(node_name, **kwargs)
-        self.sink: Sink | None = None
-        p = self._declare_parameters()
-        self._p = p
-        self.frontend = VoFrontend(frontend_config(p))
-        self.sync: StereoSync[Any] = StereoSync(
-            SyncConfig(p["approx_sync"], p["approx_sync_max_interval"], p["sync_queue_size"])
-        )
-        self.monitor = StarvationMonitor(p["starvation_timeout"])
+        super().__init__(node_name, VoNodeConfig, **kwargs)
+        config = self.config
+        self.frontend = VoFrontend(config.frontend)
+        self.sync: StereoSync[Any] = StereoSync(config.sync)
+        self.monitor = StarvationMonitor(config.starvation_timeout)
         self._models: list[ma.CameraModel | None] = [None, None]
         self._last_image_ns: list[int | None] = [None, None]
         self._newest_ns: int | None = None
         self._last_diag_ns: int | None = None
         self._inputs_since_tick = 0
         self._silent_ticks = 0
-        self._warned: dict[str, float] = {}
         self.tf_skipped = 0
-        #: What became of each input's messages (h2o_slam.ros.inputs), by source key.
-        self.inputs: dict[str, InputCounts] = {}
-        self._subscribe(bool(p["use_compressed"]))
+        self._subscribe(config.use_compressed)
         self._advertise()
-        self.create_service(Trigger, "~/reset", self._boundary("reset", self._on_reset))
-        self.create_service(SetBool, "~/pause", self._boundary("pause", self._on_pause))
-        self.create_timer(float(p["diagnostics_period"]),
-                          self._boundary("diagnostics_timer", self._on_timer))
-        self._diagnose = self._boundary("diagnostics", self._maybe_diagnostics)
+        self.create_service(Trigger, "~/reset", self.boundary("reset", self._on_reset))
+        self.create_service(SetBool, "~/pause", self.boundary("pause", self._on_pause))
+        self.create_timer(config.diagnostics_period,
+                          self.boundary("diagnostics_timer", self._on_timer))
+        self._diagnose = self.boundary("diagnostics", self._maybe_diagnostics)
         self._log_ready()
 
     # ------------------------------------------------------------------ set-up
-
-    def _declare_parameters(self) -> dict[str, Any]:
-        values = {}
-        for spec in PARAMETERS:
-            param = self.declare_parameter(spec.name, spec.default, _descriptor(spec))
-            values[spec.name] = param.value
-        return values
 
     def _subscribe(self, compressed: bool) -> None:
         image_type, suffix = (CompressedImage, "/compressed") if compressed else (Image, "")
@@ -281,56 +126,37 @@ class HybridVoNode(Node):
             ("left_image", image_type, f"left/image_rect{suffix}", self.on_left_image, sensor),
             ("right_image", image_type, f"right/image_rect{suffix}", self.on_right_image, sensor),
         )
-        self.input_topics: dict[str, str] = {}
         for key, msg_type, topic, callback, qos in specs:
-            self.inputs[key] = InputCounts()
-            sub = counted_subscription(self, self.inputs[key], msg_type, topic, callback, qos)
-            self.input_topics[key] = sub.topic_name
+            self.subscribe(key, msg_type, topic, callback, qos)
         partners = {"left_image": "right_image", "right_image": "left_image"}
         for key, topic in self.input_topics.items():
             partner = self.input_topics[partners[key]] if key in partners else None
             self.monitor.watch(topic, once=key.endswith("_info"), partner=partner)
 
     def _advertise(self) -> None:
-        p = self._p
-        self._publishers_by_key: dict[str, Any] = {
-            "odometry": self.create_publisher(Odometry, "odometry/hybrid", 10),
-            "diagnostics": self.create_publisher(DiagnosticArray, "/diagnostics", 10),
-        }
-        if p["publish_debug_image"]:
-            self._publishers_by_key["debug_image"] = self.create_publisher(
-                Image, "~/debug_image", qos_profile_sensor_data
-            )
-        self._tf_class = _tf_message_class() if p["publish_tf"] else None
-        if self._tf_class is not None:
-            self._publishers_by_key["tf"] = self.create_publisher(
-                self._tf_class, "/tf", QoSProfile(depth=100)
-            )
-        elif p["publish_tf"]:
-            self.get_logger().warning(
-                "publish_tf is true but tf2_msgs is not installed (ros-jazzy-tf2-msgs); "
-                "odom -> base_link is not published on /tf (counted as tf_skipped)"
-            )
+        self.advertise("odometry", Odometry, "odometry/hybrid", 10)
+        self.advertise_diagnostics()
+        if self.config.publish_debug_image:
+            self.advertise("debug_image", Image, "~/debug_image", qos_profile_sensor_data)
+        if self.config.publish_tf:
+            self.advertise_tf("odom -> base_link is not published on /tf (counted as "
+                              "tf_skipped)")
 
     def _log_ready(self) -> None:
         """One line at start-up: the node is up, the topics it reads and writes, and the
         parameters that decide what it computes."""
-        p, topics = self._p, self.input_topics
+        c, topics = self.config, self.input_topics
+        front, odometer = c.frontend, c.frontend.odometer
         out = ", ".join(self.output_topics.values())
         self.get_logger().info(
             f"{self.get_fully_qualified_name()} ready: in {topics['left_image']}, "
-            f"{topics['right_image']} ({'CompressedImage' if p['use_compressed'] else 'Image'}"
+            f"{topics['right_image']} ({'CompressedImage' if c.use_compressed else 'Image'}"
             f"), {topics['left_info']}, {topics['right_info']}, {topics['odom']} (wheel "
-            f"odometry); out {out}; {p['odom_frame']} -> {p['base_frame']}, approx_sync "
-            f"{str(p['approx_sync']).lower()} ({p['approx_sync_max_interval']} s), work_width_px "
-            f"{p['odometer.work_width_px']}, num_patches {p['odometer.num_patches']}, "
-            f"frame_rate_hz {p['odometer.frame_rate_hz']}, camera_height "
-            f"{p['camera_height']} m, camera_pitch {p['camera_pitch']} rad")
-
-    @property
-    def output_topics(self) -> dict[str, str]:
-        """Resolved topic of each output, by key (``odometry``, ``tf``, ...)."""
-        return {key: pub.topic_name for key, pub in self._publishers_by_key.items()}
+            f"odometry); out {out}; {c.odom_frame} -> {c.base_frame}, approx_sync "
+            f"{str(c.sync.approx_sync).lower()} ({c.sync.approx_sync_max_interval} s), "
+            f"work_width_px {odometer.work_width_px}, num_patches {odometer.num_patches}, "
+            f"frame_rate_hz {odometer.frame_rate_hz}, camera_height {front.camera_height} m, "
+            f"camera_pitch {front.camera_pitch} rad")
 
     # ------------------------------------------------------------------ callbacks
 
@@ -355,41 +181,20 @@ class HybridVoNode(Node):
         self._guarded("odom", self._wheel_odom, msg)
 
     def _guarded(self, source: str, handler: Callable[..., None], *args: Any) -> None:
-        """Run a callback's work: the boundary of every input callback. A bad input is
-        logged, counted and skipped (doc/nodes.md, bad input); so is any other exception,
-        counted as ``<source>: unexpected <Type>`` (a bug, logged as an error)."""
+        """Handle one input behind the boundary (doc/nodes.md, bad input); a report is due
+        after each accepted one."""
         self._inputs_since_tick += 1
-        try:
-            handler(*args)
-        except Exception as exc:  # the boundary: no message ends the node (issue 13)
-            self.inputs[source].rejected += 1
-            self._count_rejection(source, exc)
-            return
-        self.inputs[source].accepted += 1
-        self._diagnose()
+        if self.guarded(source, handler, *args):
+            self._diagnose()
 
-    def _count_rejection(self, source: str, exc: Exception) -> None:
-        """Log and count a refused input (or a failed timer or service) by reason."""
-        where = self.input_topics.get(source, source)
-        if isinstance(exc, InputRejected):  # counted by the frontend already
-            self._warn(exc.reason, f"{where}: {exc}")
-        elif isinstance(exc, InputError | HybridVOError):
-            reason = reason_key(source, exc)
-            self.frontend.count_rejection(reason, str(exc))
-            self._warn(reason, f"{where}: rejected: {exc}")
-        else:
-            reason = f"{source}: unexpected {type(exc).__name__}"
-            self.frontend.count_rejection(reason, str(exc))
-            now = time.monotonic()
-            if now - self._warned.get(reason, -math.inf) >= LOG_THROTTLE_S:
-                self._warned[reason] = now
-                self.get_logger().error(f"{where}: unexpected {type(exc).__name__}: {exc}")
+    def rejection_reason(self, what: str, exc: Exception) -> str:
+        """The frontend's reason for what it refused itself, else the field and problem."""
+        return exc.reason if isinstance(exc, InputRejected) else reason_key(what, exc)
 
-    def _boundary(self, what: str, work: Callable[..., Any]) -> Callable[..., Any]:
-        """``work`` (the timer or a service) behind the node's boundary: an exception is
-        logged and counted, never raised into the executor; a service then answers
-        ``success=False`` with the reason."""
-        return behind_boundary(what, work, self._count_rejection)
+    def record_rejection(self, reason: str, exc: Exception) -> None:
+        """Counted in the frontend's statistics (``rejected.<reason>`` in /diagnostics)."""
+        if not isinstance(exc, InputRejected):  # the frontend counted it already
+            self.frontend.count_rejection(reason, str(exc))
 
     def _note(self, source: str, stamp_ns: int) -> None:
         self.monitor.note(self.input_topics[source], stamp_ns)
@@ -432,7 +237,7 @@ class HybridVoNode(Node):
                 reason = reason_key(source, exc)
                 self.frontend.count_rejection(reason, str(exc))
                 self.inputs[source].move("rejected")  # taken in when it arrived
-                self._warn(reason, f"{self.input_topics[source]}: rejected: {exc}")
+                self.log_throttled(reason, f"{self.input_topics[source]}: rejected: {exc}")
                 self._publish(self.frontend.add_frame(stamp_ns, None, None, BAD_IMAGE))
                 return
         self._publish(self.frontend.add_frame(stamp_ns, images[0], images[1]))
@@ -459,15 +264,8 @@ class HybridVoNode(Node):
 
     # ------------------------------------------------------------------ outputs
 
-    def emit(self, key: str, msg: Any) -> None:
-        """Publish ``msg`` on output ``key`` and hand it to :attr:`sink` (if set)."""
-        pub = self._publishers_by_key[key]
-        pub.publish(msg)
-        if self.sink is not None:
-            self.sink(pub.topic_name, msg)
-
     def _publish(self, outputs: Sequence[VoOutput]) -> None:
-        odom_frame, base_frame = self._p["odom_frame"], self._p["base_frame"]
+        odom_frame, base_frame = self.config.odom_frame, self.config.base_frame
         for out in outputs:
             sample = ma.planar_odometry_sample(
                 out.stamp_ns, odom_frame, base_frame, out.x_m, out.y_m, out.yaw_rad,
@@ -475,23 +273,22 @@ class HybridVoNode(Node):
             )
             sample = replace(sample, twist_linear=np.array([out.v_x_mps, out.v_y_mps, 0.0]))
             self.emit("odometry", ma.fill_odometry(Odometry, sample))
-            if self._p["publish_tf"]:
+            if self.config.publish_tf:
                 self._publish_tf(sample)
-            if self._p["publish_debug_image"]:
+            if self.config.publish_debug_image:
                 self._publish_debug_image(out.stamp_ns)
 
     def _publish_tf(self, sample: ma.OdometrySample) -> None:
-        if self._tf_class is None:
+        if self.tf_message is None:
             self.tf_skipped += 1
             return
-        transform = ma.fill_transform(
+        self.emit_tf(ma.fill_transform(
             TransformStamped, sample.R, sample.t, stamp_ns=sample.stamp_ns,
             frame_id=sample.frame_id, child_frame_id=sample.child_frame_id,
-        )
-        self.emit("tf", ma.fill_tf_message(self._tf_class, [transform]))
+        ))
 
     def _publish_debug_image(self, stamp_ns: int) -> None:
-        image = self.frontend.debug_image(int(self._p["debug_image_scale"]))
+        image = self.frontend.debug_image(self.config.debug_image_scale)
         if image is None:
             return
         left = self._models[LEFT]
@@ -506,7 +303,7 @@ class HybridVoNode(Node):
         newest = self._newest_ns
         if newest is None:
             return
-        period_ns = int(self._p["diagnostics_period"] * NS_PER_S)
+        period_ns = int(self.config.diagnostics_period * NS_PER_S)
         if self._last_diag_ns is None or newest - self._last_diag_ns >= period_ns:
             self._last_diag_ns = newest
             self.publish_diagnostics(newest)
@@ -520,7 +317,7 @@ class HybridVoNode(Node):
             stamp = self._newest_ns
             if stamp is None:
                 stamp = self.get_clock().now().nanoseconds
-            silent_s = self._silent_ticks * self._p["diagnostics_period"]
+            silent_s = self._silent_ticks * self.config.diagnostics_period
             topics = ", ".join(self.input_topics.values())
             self.publish_diagnostics(stamp, extra=[f"no input for {silent_s:.0f} s on {topics}"])
         self._inputs_since_tick = 0
@@ -531,7 +328,7 @@ class HybridVoNode(Node):
         found += self._unpaired_stereo()
         if self.frontend.stats.fallbacks[NO_CALIBRATION] and not self.frontend.calibrated:
             found.append("no usable stereo calibration yet: using wheel odometry only")
-        if self._p["publish_tf"] and self._tf_class is None:
+        if self.config.publish_tf and self.tf_message is None:
             found.append("tf2_msgs not installed: /tf not published")
         return found
 
@@ -548,14 +345,14 @@ class HybridVoNode(Node):
             f"{self.input_topics['left_image']} and {self.input_topics['right_image']} "
             f"arrive but no pair for {quiet_ns / NS_PER_S:.1f} s (latest stamps differ by "
             f"{gap_s:+.3f} s; approx_sync_max_interval "
-            f"{self._p['approx_sync_max_interval']} s)"
+            f"{self.config.sync.approx_sync_max_interval} s)"
         ]
 
     def publish_diagnostics(self, stamp_ns: int, extra: Sequence[str] = ()) -> None:
         """Emit one ``/diagnostics`` report stamped ``stamp_ns``; log current problems."""
         problems = [*extra, *self.problems()]
         for text in problems:
-            self._warn(text.split(" for ")[0], text)
+            self.log_throttled(text.split(" for ")[0], text)
         st = self.frontend.stats
         values: dict[str, object] = {
             "frames": st.frames,
@@ -589,15 +386,7 @@ class HybridVoNode(Node):
             message=message,
             values=values,
         )
-        self.emit("diagnostics", ma.fill_diagnostic_array(DiagnosticArray, [report],
-                                                          stamp_ns=stamp_ns))
-
-    def _warn(self, key: str, text: str) -> None:
-        """Log ``text`` unless the same problem was logged less than LOG_THROTTLE_S ago."""
-        now = time.monotonic()
-        if now - self._warned.get(key, -math.inf) >= LOG_THROTTLE_S:
-            self._warned[key] = now
-            self.get_logger().warning(text)
+        self.emit_report(report, stamp_ns)
 
     # ------------------------------------------------------------------ services
 

@@ -1,6 +1,6 @@
-"""The front page and the doc/ pages against the code they describe: parameter tables
-against the parameters the nodes declare, the test command against CI, links and pictures
-against the files they name."""
+"""The front page and the doc/ pages against the code they describe: the test command
+against CI, links and pictures against the files they name (the parameter tables against
+the nodes' configuration trees: test/test_parameter_files.py)."""
 
 from __future__ import annotations
 
@@ -10,61 +10,20 @@ import re
 import subprocess
 import unicodedata
 from pathlib import Path
-from typing import Any
 
 import pytest
 
 from h2o_slam.app.cli.demo import PLOTS
-from h2o_slam.ros.h2o_node import PARAMETERS as H2O_PARAMETERS
-from h2o_slam.ros.h2o_node import RUNTIME
-from hybrid_vo.vo_node import PARAMETERS as VO_PARAMETERS
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "doc").glob("*.md"))]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-RUN_TIME = "**Run time.**"
 #: Folders that are not the project's own files (when there is no git to list those).
 NOT_OURS = {".git", ".venv", "build", "install", "out", "log", "__pycache__",
             ".mypy_cache", ".ruff_cache", ".pytest_cache", ".hypothesis"}
 #: What a clone cannot have: a sibling folder of data beside it, this machine's paths. Written
 #: so that this file does not match them itself.
 OUTSIDE = re.compile(r"\.\./shared\b|\bshared/dat[a]\b|/\s*[\"']shared[\"']|/wor[k]/")
-
-
-def fmt_default(value: Any) -> str:
-    """A default as the parameter tables write it."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str | list):
-        return f"`{value}`"
-    return str(value)
-
-
-def fmt_range(low: float | None, high: float | None) -> str:
-    """A range as the parameter tables write it (empty for none)."""
-    return "" if low is None or high is None else f"{low:g}–{high:g}"
-
-
-def section(text: str, heading: str) -> str:
-    """The text under ``heading`` up to the next heading of its level or above."""
-    level = len(heading) - len(heading.lstrip("#"))
-    start = text.index(heading + "\n")
-    end = re.search(rf"^#{{1,{level}}} ", text[start + len(heading):], flags=re.M)
-    return text[start:start + len(heading) + (end.start() if end else len(text))]
-
-
-def parameter_rows(text: str) -> dict[str, tuple[str, str, str]]:
-    """The rows of the ``| parameter | default | range | meaning |`` table in ``text``:
-    name → (default, range, meaning)."""
-    lines = text.splitlines()
-    start = lines.index("| parameter | default | range | meaning |") + 2
-    rows = {}
-    for line in lines[start:]:
-        if not line.startswith("|"):
-            break
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        rows[cells[0].strip("`")] = (cells[1], cells[2], cells[3])
-    return rows
 
 
 def slug(heading: str) -> str:
@@ -77,25 +36,6 @@ def slug(heading: str) -> str:
 def anchors(path: Path) -> set[str]:
     text = re.sub(r"^```.*?^```", "", path.read_text(), flags=re.M | re.S)
     return {slug(m[1]) for m in re.finditer(r"^#+ (.+)$", text, flags=re.M)}
-
-
-def test_h2o_node_parameter_table_is_what_the_node_declares() -> None:
-    rows = parameter_rows(section((ROOT / "doc/nodes.md").read_text(), "## `h2o_node`"))
-    assert list(rows) == [name for name, *_ in H2O_PARAMETERS]
-    for name, default, _, bounds in H2O_PARAMETERS:
-        shown, limits, meaning = rows[name]
-        assert shown == fmt_default(default), name
-        assert limits == (fmt_range(*bounds) if bounds else ""), name
-        assert meaning.endswith(RUN_TIME) == (name in RUNTIME), name
-
-
-def test_hybrid_vo_node_parameter_table_is_what_the_node_declares() -> None:
-    rows = parameter_rows(section((ROOT / "doc/nodes.md").read_text(), "## `hybrid_vo_node`"))
-    assert list(rows) == [spec.name for spec in VO_PARAMETERS]
-    for spec in VO_PARAMETERS:
-        shown, limits, _ = rows[spec.name]
-        assert shown == fmt_default(spec.default), spec.name
-        assert limits == fmt_range(spec.low, spec.high), spec.name
 
 
 def test_the_front_pages_test_command_is_what_ci_runs() -> None:

@@ -1,21 +1,34 @@
-"""Layering (doc/design.md, Layering): h2o_slam is core < io < ros < app, with the
-baselines beside io on the core, and imports only run downward.
+"""Layering (doc/design.md, Layering): four packages that depend one way, and inside
+h2o_slam the layers core < io < ros < app, with the baselines beside io on the core; imports
+only run downward.
 
-* ``h2o_slam.core`` — the solver mathematics: no file formats, no rclpy, no plotting.
+Between the packages:
+
+* ``h2o_slam.core`` — the base every package may use (geometry, errors): no rclpy, no
+  files, no plotting, nothing of the other packages.
+* ``msg_adapters`` — message layouts, on ``h2o_slam.core`` alone.
+* ``ros_node_base`` — the shell both nodes share (parameters from a configuration tree, the
+  boundary, input counts, outputs, ``main``), on rclpy, ``msg_adapters`` and
+  ``h2o_slam.core`` alone.
+* ``hybrid_vo`` — the odometer, on ``h2o_slam.core`` and ``msg_adapters``; its node
+  (``hybrid_vo.vo_node``) also on ``ros_node_base``. Nothing else of h2o_slam.
+* ``h2o_slam.app`` — replay and the commands: the only place that joins the two nodes'
+  packages (the only part of h2o_slam that may import ``hybrid_vo``).
+
+Inside h2o_slam:
+
 * ``h2o_slam.baselines`` — what the benchmarks compare against (TORO, covariance variants,
   other tools' χ²), over the core alone; only ``app`` (``h2o-solve``) imports it.
 * ``h2o_slam.io`` — files and bags, over the core (rclpy only inside the bag writer).
-* ``h2o_slam.ros`` — the node and its rclpy-free mapper, over io and core.
-* ``h2o_slam.app`` — replay and the commands: the only part of h2o_slam that may import
-  ``hybrid_vo``.
+* ``h2o_slam.ros`` — the node and its rclpy-free mapper and configuration tree, over io, core
+  and ``ros_node_base``.
 
-``msg_adapters`` sits on the core; ``hybrid_vo`` on the core, ``msg_adapters`` and the ROS
-layer's node plumbing. The simulator (``hybrid_vo.sim``) is a tool of the tests, the benchmarks
-and ``app``: no other part of the three packages imports it. Two checks: every import
-statement in the source (also those inside functions), and what importing each module
-actually loads (which catches indirect imports). ruff's banned-api rule (pyproject.toml)
-stops rclpy in a core file at lint time. Within the core, no two modules import each other,
-directly or through others (an import circle).
+The simulator (``hybrid_vo.sim``) is a tool of the tests, the benchmarks and ``app``: no
+other part of the packages imports it. Two checks: every import statement in the source
+(also those inside functions), and what importing each module actually loads (which catches
+indirect imports). ruff's banned-api rule (pyproject.toml) stops rclpy in a core file at
+lint time. Within the core, no two modules import each other, directly or through others
+(an import circle).
 """
 
 from __future__ import annotations
@@ -39,16 +52,26 @@ MAY_IMPORT = {
 LAYERS = tuple(MAY_IMPORT)
 #: Outside packages each part may import (beyond the standard library and numerical stack).
 FORBIDDEN_EXTERNAL = {
-    "core": ("rclpy", "rosbags", "matplotlib", "yaml", "msg_adapters", "hybrid_vo"),
-    "baselines": ("rclpy", "rosbags", "matplotlib", "yaml", "msg_adapters", "hybrid_vo"),
-    "io": ("msg_adapters", "hybrid_vo"),
+    "core": ("rclpy", "rosbags", "matplotlib", "yaml", "msg_adapters", "hybrid_vo",
+             "ros_node_base"),
+    "baselines": ("rclpy", "rosbags", "matplotlib", "yaml", "msg_adapters", "hybrid_vo",
+                  "ros_node_base"),
+    "io": ("msg_adapters", "hybrid_vo", "ros_node_base"),
     "ros": ("hybrid_vo",),
     "app": (),
 }
 #: The simulator: only itself and h2o_slam's applications may import it.
 SIMULATOR = "hybrid_vo.sim"
-#: What each sibling package may import from h2o_slam.
-SIBLING_ALLOWED = {"msg_adapters": ("core",), "hybrid_vo": ("core", "ros")}
+#: The packages of the repository.
+PACKAGES = ("h2o_slam", "msg_adapters", "ros_node_base", "hybrid_vo")
+#: What each package beside h2o_slam may import of the repository's packages (itself too).
+SIBLING_ALLOWED = {
+    "msg_adapters": ("msg_adapters", "h2o_slam.core"),
+    "ros_node_base": ("ros_node_base", "msg_adapters", "h2o_slam.core"),
+    "hybrid_vo": ("hybrid_vo", "msg_adapters", "ros_node_base", "h2o_slam.core"),
+}
+#: The one module of hybrid_vo that may use the node base: its node (the cores do not).
+VO_NODE = "hybrid_vo.vo_node"
 
 
 def _modules(package: str) -> list[tuple[str, Path]]:
@@ -98,9 +121,11 @@ def violations(module: str, source: str) -> list[str]:
                 found.append(f"{module} ({own}) imports {name} ({target})")
             if root in FORBIDDEN_EXTERNAL[own]:
                 found.append(f"{module} ({own}) imports {name}")
-        elif top in SIBLING_ALLOWED and target is not None:
-            if target not in SIBLING_ALLOWED[top]:
-                found.append(f"{module} imports {name} ({target})")
+        elif top in SIBLING_ALLOWED and root in PACKAGES:
+            if not any(_within(name, allowed) for allowed in SIBLING_ALLOWED[top]):
+                found.append(f"{module} ({top}) imports {name}")
+            elif root == "ros_node_base" and top == "hybrid_vo" and module != VO_NODE:
+                found.append(f"{module} (the odometer's core) imports the node base ({name})")
         if _within(name, SIMULATOR) and not (_within(module, SIMULATOR) or own == "app"):
             found.append(f"{module} imports the simulator ({name})")
     return found
@@ -112,7 +137,7 @@ def test_every_h2o_slam_module_is_in_a_layer() -> None:
     assert {_layer(m) for m, _ in _modules("h2o_slam")} >= set(LAYERS)
 
 
-@pytest.mark.parametrize("package", ["h2o_slam", "hybrid_vo", "msg_adapters"])
+@pytest.mark.parametrize("package", PACKAGES)
 def test_imports_run_downward(package: str) -> None:
     found = [v for module, path in _modules(package)
              for v in violations(module, path.read_text(encoding="utf-8"))]
@@ -136,6 +161,19 @@ def test_imports_run_downward(package: str) -> None:
         ("hybrid_vo.odometer", "from hybrid_vo.sim.world import make_drive"),
         ("hybrid_vo.vo_node", "def f():\n    from .sim import messages"),
         ("msg_adapters.gps", "from hybrid_vo import sim"),
+        # The packages depend one way: hybrid_vo and msg_adapters on h2o_slam.core alone,
+        # the node base on neither node's package, the cores on no node base.
+        ("hybrid_vo.vo_node", "from h2o_slam.ros.boundary import behind_boundary"),
+        ("hybrid_vo.vo_node", "import h2o_slam.io.bags"),
+        ("hybrid_vo.frontend", "from h2o_slam import ros"),
+        ("hybrid_vo.frontend", "from ros_node_base.params import param_specs"),
+        ("msg_adapters.gps", "from ros_node_base.node import NodeBase"),
+        ("ros_node_base.node", "from h2o_slam.ros.mapper import Mapper"),
+        ("ros_node_base.node", "from hybrid_vo.errors import HybridVOError"),
+        ("ros_node_base.params", "def f():\n    import h2o_slam.app.replay"),
+        ("h2o_slam.core.errors", "from ros_node_base.params import ParamSpec"),
+        ("h2o_slam.io.g2o", "import ros_node_base"),
+        ("h2o_slam.ros.h2o_node", "from hybrid_vo.node_config import VoNodeConfig"),
     ],
 )
 def test_an_upward_import_is_reported(module: str, source: str) -> None:
@@ -149,6 +187,11 @@ def test_a_downward_import_passes() -> None:
     assert violations("h2o_slam.baselines.toro", "from ..core.modes import tree_estimate") == []
     assert violations("h2o_slam.app.cli.demo", "from hybrid_vo.sim import world") == []
     assert violations("hybrid_vo.sim.messages", "from hybrid_vo.sim.world import Drive") == []
+    assert violations("hybrid_vo.vo_node", "from ros_node_base.node import NodeBase\n"
+                      "from h2o_slam.core.errors import InputError\nimport msg_adapters") == []
+    assert violations("ros_node_base.node", "import msg_adapters as ma\n"
+                      "from h2o_slam.core.errors import H2OError") == []
+    assert violations("h2o_slam.ros.h2o_node", "from ros_node_base.node import NodeBase") == []
 
 
 def import_circles(sources: dict[str, str]) -> list[list[str]]:
@@ -228,9 +271,17 @@ def test_the_core_and_the_baselines_load_no_rclpy_files_or_plotting(layer: str) 
 
 def test_io_and_the_rclpy_free_cores_load_no_rclpy() -> None:
     io = [m for m, _ in _modules("h2o_slam") if _layer(m) == "io"]
-    vo_core = [m for m, path in _modules("hybrid_vo") if "node" not in path.name]
-    _loads_nothing_of(io + vo_core + ["h2o_slam.ros.mapper"],
-                      ["rclpy", "h2o_slam.app"])
+    vo_core = [m for m, _ in _modules("hybrid_vo") if m != VO_NODE]
+    trees = ["h2o_slam.ros.mapper", "h2o_slam.ros.node_config", "ros_node_base.params",
+             "ros_node_base.documents"]
+    _loads_nothing_of(io + vo_core + trees, ["rclpy", "h2o_slam.app", "ros_node_base.node"])
+
+
+def test_the_packages_beside_h2o_slam_load_nothing_of_it_but_the_core() -> None:
+    """Also through indirect imports: hybrid_vo, msg_adapters and the node base stand on
+    h2o_slam.core alone, so that only h2o_slam.app joins the two nodes' packages."""
+    modules = [m for package in SIBLING_ALLOWED for m, _ in _modules(package)]
+    _loads_nothing_of(modules, [f"h2o_slam.{layer}" for layer in LAYERS if layer != "core"])
 
 
 def test_only_the_simulator_loads_the_simulator() -> None:

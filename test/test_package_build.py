@@ -161,7 +161,7 @@ def test_sourced_install_space_imports_installed_copy(
         [
             sys.executable,
             "-c",
-            "import h2o_slam, hybrid_vo, msg_adapters; print(h2o_slam.__file__)",
+            "import h2o_slam, hybrid_vo, msg_adapters, ros_node_base; print(h2o_slam.__file__)",
         ],
         env=sourced_env,
         cwd=colcon_build.root,
@@ -177,7 +177,7 @@ def test_installed_copy_has_every_sub_package(
     """setup.py's ``find_packages`` installs every folder with an ``__init__.py``, a new
     sub-package too: each imports from the install space, not from the source tree."""
     packages = sorted(".".join(init.parent.relative_to(REPO).parts)
-                      for top in ("h2o_slam", "hybrid_vo", "msg_adapters")
+                      for top in ("h2o_slam", "hybrid_vo", "msg_adapters", "ros_node_base")
                       for init in (REPO / top).rglob("__init__.py"))
     code = ("import importlib, sys\n"
             "for name in sys.argv[1:]:\n"

@@ -382,12 +382,12 @@ class Replay:
 
     def _loop(self, reader: BagReader) -> None:
         h2o = self._h2o()
-        timers = [Periodic(float(h2o.p("transform_publish_period")),
+        timers = [Periodic(h2o.config.transform_publish_period,
                            lambda _: h2o.publish_map_to_odom()),
-                  Periodic(float(h2o.p("diagnostics_period")), self._publish_diagnostics),
+                  Periodic(h2o.config.diagnostics_period, self._publish_diagnostics),
                   Periodic(self.options.graph_period_s, self._sample_graph)]
         if self.options.budget_ms is not None:  # with no budget nothing is ever deferred
-            timers.append(Periodic(float(h2o.p("idle_period")), lambda _: h2o.idle_step()))
+            timers.append(Periodic(h2o.config.idle_period, lambda _: h2o.idle_step()))
         progress = Progress((reader.end_ns - reader.start_ns) / NS, "replay") \
             if self.options.progress else None
         for item in reader.messages():

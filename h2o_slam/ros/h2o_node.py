@@ -13,16 +13,17 @@ hands the message to :attr:`H2ONode.sink` when one is set. Output stamps come fr
 stamps, never the wall clock.
 
 No input ends the node: every subscription callback, timer, service and parameter callback
-runs inside one boundary (:meth:`H2ONode._guarded` for inputs, :meth:`H2ONode._boundary`
-for the rest) that turns any exception into a logged rejection counted by reason in
-``/diagnostics`` (``rejected <input>: unexpected <Type>`` for anything but the package's
-own errors, which name their reason).
+runs behind the boundary of the shell both nodes share (:class:`ros_node_base.node.NodeBase`),
+which turns any exception into a logged rejection counted by reason in ``/diagnostics``
+(``rejected <input>: unexpected <Type>`` for anything but the package's own errors, which
+name their reason). Parameters come from one typed tree,
+:class:`h2o_slam.ros.node_config.H2ONodeConfig`: read as one snapshot (:attr:`H2ONode.config`),
+changed at run time as a whole.
 """
 
 from __future__ import annotations
 
 import gc
-import importlib
 import math
 import os
 import re
@@ -30,22 +31,12 @@ import sys
 import time
 from collections import Counter, deque
 from collections.abc import Callable
-from dataclasses import fields, replace
 from typing import Any
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry
 from nav_msgs.msg import Path as PathMsg
-from rcl_interfaces.msg import (
-    FloatingPointRange,
-    IntegerRange,
-    ParameterDescriptor,
-    SetParametersResult,
-)
-from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import NavSatFix
 from std_srvs.srv import SetBool, Trigger
@@ -57,10 +48,10 @@ from h2o_slam.core import warmup
 from h2o_slam.core.errors import H2OError, InputError
 from h2o_slam.core.graph import EdgeKind, edge_chi2
 from h2o_slam.core.timing import CallbackTimes, CostShare, InputHealth
-from h2o_slam.ros.boundary import behind_boundary
-from h2o_slam.ros.inputs import InputCounts, counted_subscription
-from h2o_slam.ros.mapper import Mapper, MapperConfig, restore
-from h2o_slam.ros.node_main import run_node
+from h2o_slam.ros.mapper import Mapper, restore
+from h2o_slam.ros.node_config import H2ONodeConfig
+from ros_node_base.main import run_node
+from ros_node_base.node import NodeBase
 
 NODE_NAME = "h2o_node"
 
@@ -70,108 +61,16 @@ INPUTS = ("odometry", "loop_closure", "gps")
 #: Numbers in rejection reasons, replaced so that one reason is one diagnostics key.
 _NUMBER = re.compile(r"[-+]?\d[\d.]*(e[-+]?\d+)?")
 
-#: (name, default, description, (low, high) or None). Ranges bound what can be set.
-PARAMETERS: list[tuple[str, Any, str, tuple[float, float] | None]] = [
-    ("map_frame", "map", "Frame of the optimized graph (ENU when GPS is used).", None),
-    ("odom_frame", "odom", "Frame of the incoming odometry.", None),
-    ("base_frame", "base_link", "Robot body frame.", None),
-    ("publish_tf", True, "Publish map->odom on /tf.", None),
-    ("transform_publish_period", 0.05, "Seconds between map->odom publications.",
-     (0.001, 10.0)),
-    ("graph_publish_period", 1.0, "Seconds between graph publications.", (0.01, 60.0)),
-    ("diagnostics_period", 1.0, "Seconds between /diagnostics publications.", (0.05, 60.0)),
-    ("budget_ms", 5.0, "Solver time per callback in ms; 0 solves every new edge in full and "
-     "revisits nothing (replays: deterministic) (run-time changeable).", (0.0, 1000.0)),
-    ("d_max", 0, "Most nodes solved per edge; 0 lets the budget decide (run-time).",
-     (0, 1_000_000)),
-    ("keyframe_distance", 0.5, "New keyframe after this travel in m; 0 disables (run-time).",
-     (0.0, 100.0)),
-    ("keyframe_angle", 0.2, "New keyframe after this turn in rad; 0 disables (run-time).",
-     (0.0, 6.3)),
-    ("keyframe_period", 0.0, "New keyframe after this many s; 0 disables (run-time).",
-     (0.0, 3600.0)),
-    ("odom_sigma_per_m", 0.05, "Odometry translation sigma per metre travelled.", (0.0, 10.0)),
-    ("odom_yaw_sigma_per_rad", 0.05, "Odometry heading sigma per radian turned.", (0.0, 10.0)),
-    ("odom_yaw_sigma_per_m", 0.01, "Odometry heading sigma (rad) per metre travelled.",
-     (0.0, 10.0)),
-    ("loop_gate_chi2", 16.266,
-     "Largest accepted loop-closure chi2 (3 dof; 16.27 is the 99.9 % quantile).",
-     (0.1, 1e12)),
-    ("robust", True, "Weigh loop closures and GPS fixes as possible outliers (GNC-TLS in the "
-     "exact solves, every decision revised by each solve); a closure or fix the gate doubts "
-     "is held at weight 0 instead of refused. false: least squares, the gate refuses.", None),
-    ("loop_stamp_tolerance", 0.5, "Seconds a loop-closure stamp may lie from a keyframe.",
-     (0.0, 60.0)),
-    ("loop_default_sigma_xy", 0.1, "Loop closure sigma (m) when its covariance is all zero.",
-     (1e-6, 100.0)),
-    ("loop_default_sigma_yaw", 0.02, "Loop closure sigma (rad) when its covariance is zero.",
-     (1e-6, 10.0)),
-    ("datum", [0.0], "GPS datum [lat_deg, lon_deg, alt_m]; [0.0] takes the first good fix.",
-     None),
-    ("zero_altitude", True, "Ignore GPS altitude.", None),
-    ("gps_sigma_floor", 0.05, "Smallest GPS sigma in m (a zero covariance never reaches "
-     "the solver).", (1e-4, 100.0)),
-    ("gps_max_sigma", 10.0, "Fixes with a larger horizontal sigma (m) are dropped.",
-     (1e-3, 1e4)),
-    ("gps_unknown_sigma", 5.0, "Sigma (m) for fixes whose covariance type is UNKNOWN.",
-     (1e-3, 1e4)),
-    ("gps_lever_arm", [0.0, 0.0], "Antenna position [x, y] in base_frame, m.", None),
-    ("gps_time_tolerance", 0.2, "Seconds a fix may lie from the keyframe it lands on.",
-     (0.0, 10.0)),
-    ("map_file", "", "g2o file for the save service and for load_map_on_start.", None),
-    ("load_map_on_start", False, "Continue the graph saved in map_file.", None),
-    ("input_queue_depth", 1000, "Subscription queue depth of the odometry and GPS inputs "
-     "(10 s of odometry at 100 Hz: what a stall of the node leaves waiting).", (1, 100_000)),
-    ("loop_closure_queue_depth", 10000, "Subscription queue depth of the loop-closure input "
-     "(a detector catching up after a revisit sends thousands at once).", (1, 1_000_000)),
-    ("idle_budget_ms", 10.0, "Solver time of an idle step, for edges that did not fit into "
-     "the input callbacks' budget; 0 disables (run-time).", (0.0, 1000.0)),
-    ("idle_period", 0.05, "Seconds between idle steps; they run only while edges wait.",
-     (0.001, 10.0)),
-    ("input_late_ms", 100.0, "An odometry or GPS message handled more than this many ms "
-     "after its stamp (less the smallest such delay seen) counts as late in /diagnostics.",
-     (0.1, 1e6)),
-    ("output_time_share", 0.05, "Largest share of the node's time for each periodic output "
-     "whose cost grows with the graph (graph topics, map->odom refresh, chi2 in "
-     "/diagnostics): its period stretches as the graph grows.", (0.001, 1.0)),
-]
 
-#: Parameters whose changes take effect while running (the rest need a restart).
-RUNTIME = {"budget_ms", "d_max", "keyframe_distance", "keyframe_angle", "keyframe_period",
-           "loop_gate_chi2", "publish_tf", "idle_budget_ms"}
-
-
-def _descriptor(name: str, default: Any, text: str,
-                bounds: tuple[float, float] | None) -> ParameterDescriptor:
-    desc = ParameterDescriptor(name=name, description=text,
-                               read_only=name not in RUNTIME and name != "publish_tf")
-    if bounds is not None and isinstance(default, bool):
-        return desc
-    if bounds is not None and isinstance(default, int):
-        desc.integer_range = [IntegerRange(from_value=int(bounds[0]), to_value=int(bounds[1]),
-                                           step=1)]
-    elif bounds is not None:
-        desc.floating_point_range = [FloatingPointRange(from_value=float(bounds[0]),
-                                                        to_value=float(bounds[1]))]
-    return desc
-
-
-def _load_tf_message() -> Any:
-    """``tf2_msgs/TFMessage``, or ``None`` where tf2_msgs is not installed."""
-    try:
-        return importlib.import_module("tf2_msgs.msg").TFMessage
-    except ImportError:
-        return None
-
-
-class H2ONode(Node):
+class H2ONode(NodeBase[H2ONodeConfig]):
     """The H₂O back end as a ROS 2 node: odometry, loop closures and GPS fixes in; the
     optimized graph, pose, ``map → odom`` and ``/diagnostics`` out.
 
-    Parameters are declared from :data:`PARAMETERS` (the README lists them); the mapping
-    itself is :attr:`mapper`'s. Every input runs behind one boundary (:meth:`_guarded`):
-    held while the compiled kernels load, then handled and timed; a bad message is logged,
-    counted and skipped.
+    Parameters, the boundary, the input counts and the outputs are the shell's
+    (:class:`ros_node_base.node.NodeBase`); :attr:`config` is an :class:`H2ONodeConfig`
+    (the README lists its parameters) and the mapping itself is :attr:`mapper`'s. Every
+    input is held while the compiled kernels load, then handled and timed behind the
+    boundary; a bad message is logged, counted and skipped.
 
     Args:
         **kwargs: passed to :class:`rclpy.node.Node` (``context``, ``namespace``,
@@ -179,34 +78,29 @@ class H2ONode(Node):
 
     Attributes:
         mapper: the back end without ROS (keyframes, gated loop closures, GPS, the solver).
-        sink: callable ``(topic, msg)`` that also receives every published message (replay
-            records through it), or None.
         paused: inputs are counted as discarded instead of handled (the ``~/pause`` service).
         times, idle_times: the input callbacks' and the idle steps' time against their
             budgets.
-        inputs: what became of each input's messages (accepted, rejected, discarded, lost).
         rejected: inputs the boundary rejected, by reason (the mapper counts those it
             refuses itself; ``/diagnostics`` reports both).
         held_while_warming: inputs held while the kernels loaded.
     """
 
+    expected_errors = (H2OError,)
+
     def __init__(self, **kwargs: Any) -> None:
-        super().__init__(NODE_NAME, **kwargs)
+        super().__init__(NODE_NAME, H2ONodeConfig, **kwargs)
         self._held: deque[tuple[str, Callable[[], None]]] = deque()
         self.held_while_warming = 0
-        for name, default, text, bounds in PARAMETERS:
-            self.declare_parameter(name, default, _descriptor(name, default, text, bounds))
-        self.sink: Callable[[str, Any], None] | None = None
         self.paused = False
         self.times = CallbackTimes()
         self.idle_times = CallbackTimes()
         self.rejected: Counter[str] = Counter()
-        #: What became of each input's messages (h2o_slam.ros.inputs).
-        self.inputs = {what: InputCounts() for what in INPUTS}
+        #: The mapper's rejection count when the input being handled came in (None outside).
+        self._mapper_rejections: int | None = None
         self._last_gps_ns: int | None = None
         self._last_stamp_ns = 0
         self._graph_dirty = True
-        self._tf_cls = _load_tf_message()
         self._reset_load_state()
         self._make_interfaces()
         # The compiled kernels load (or, on a first start after the sources changed, compile)
@@ -217,9 +111,7 @@ class H2ONode(Node):
         self.mapper = self._start_mapper()
         self._datum = self._configured_datum()
         self._warming_timer = self.create_timer(
-            WARMING_PERIOD_S, self._boundary("warming_timer", self._warming_tick))
-        self.add_on_set_parameters_callback(self._check_parameters)
-        self.add_post_set_parameters_callback(self._boundary("parameters", self._apply_parameters))
+            WARMING_PERIOD_S, self.boundary("warming_timer", self._warming_tick))
         self._log_ready()
 
     def destroy_node(self) -> None:
@@ -236,53 +128,24 @@ class H2ONode(Node):
 
     # -- set-up -------------------------------------------------------------------------------
 
-    def p(self, name: str) -> Any:
-        """A parameter's value."""
-        return self.get_parameter(name).value
-
-    def mapper_config(self) -> MapperConfig:
-        """The mapper settings the parameters describe."""
-        d_max = int(self.p("d_max"))
-        lever = [float(v) for v in self.p("gps_lever_arm")]
-        if len(lever) != 2:
-            raise InputError(f"gps_lever_arm: expected [x, y], got {lever}")
-        return MapperConfig(
-            keyframe_distance_m=float(self.p("keyframe_distance")),
-            keyframe_angle_rad=float(self.p("keyframe_angle")),
-            keyframe_period_s=float(self.p("keyframe_period")),
-            odom_sigma_per_m=float(self.p("odom_sigma_per_m")),
-            odom_yaw_sigma_per_rad=float(self.p("odom_yaw_sigma_per_rad")),
-            odom_yaw_sigma_per_m=float(self.p("odom_yaw_sigma_per_m")),
-            loop_gate_chi2=float(self.p("loop_gate_chi2")),
-            loop_stamp_tolerance_s=float(self.p("loop_stamp_tolerance")),
-            gps_time_tolerance_s=float(self.p("gps_time_tolerance")),
-            gps_lever_arm_m=(lever[0], lever[1]),
-            robust=bool(self.p("robust")),
-            budget_ms=float(self.p("budget_ms")) or None,
-            d_max=d_max if d_max > 0 else None,
-            # Budgeted callbacks get a worker process for the exact solves; unbudgeted
-            # (deterministic) ones solve inline and need none.
-            background="process" if float(self.p("budget_ms")) > 0.0 else "inline",
-        )
-
     def _start_mapper(self) -> Mapper:
         # A damaged map ends the start with one line (restore validates everything a timer
         # would later use); a map never saved is a new graph.
-        path = str(self.p("map_file"))
-        if self.p("load_map_on_start") and path:
-            mapper = restore(path, self.mapper_config())
+        path = self.config.map_file
+        if self.config.load_map_on_start and path:
+            mapper = restore(path, self.config.mapper)
             if mapper is not None:
                 self.get_logger().info(
                     f"continuing the graph of {path}: {mapper.num_nodes} nodes")
                 return mapper
             self.get_logger().info(f"no map saved at {path} yet: starting a new graph")
-        return Mapper(self.mapper_config())
+        return Mapper(self.config.mapper)
 
     def _reset_load_state(self) -> None:
         """Input health, the cached map->odom correction and χ², and the rate limits of the
         outputs whose cost grows with the graph."""
-        late_ms = float(self.p("input_late_ms"))
-        share = float(self.p("output_time_share"))
+        c = self.config
+        late_ms, share = c.input_late_ms, c.output_time_share
         self.health = {"odometry": InputHealth(late_ms), "gps": InputHealth(late_ms)}
         self._last_odom_handled_ns = 0
         #: ``map -> odom`` as of the last refresh (by the transform timer, or on demand).
@@ -291,114 +154,79 @@ class H2ONode(Node):
         self._chi2_cache: dict[str, object] | None = None
         self._chi2_at_s = 0.0
         self.shares = {
-            "graph": CostShare(float(self.p("graph_publish_period")), share),
-            "map_to_odom": CostShare(float(self.p("transform_publish_period")), share),
-            "chi2": CostShare(float(self.p("diagnostics_period")), share),
+            "graph": CostShare(c.graph_publish_period, share),
+            "map_to_odom": CostShare(c.transform_publish_period, share),
+            "chi2": CostShare(c.diagnostics_period, share),
         }
         self.idle_yielded = 0
 
     def _configured_datum(self) -> ma.Datum | None:
-        values = [float(v) for v in self.p("datum")]
+        """The restored map's datum, else the parameter's (``None``: the first fix's)."""
         if self.mapper.datum is not None:
             return ma.Datum(*self.mapper.datum)
-        if len(values) == 3:
-            return ma.Datum(*values)
-        if values not in ([], [0.0]):
-            raise InputError(f"datum: expected [lat_deg, lon_deg, alt_m] or [0.0], got {values}")
-        return None
+        return self.config.messages.configured_datum
 
-    def _boundary(self, what: str, work: Callable[..., Any]) -> Callable[..., Any]:
-        """``work`` (a timer, service or parameter callback) behind the node's boundary: an
-        exception is logged and counted as ``rejected <what>: ...``, never raised into the
-        executor. A service then answers ``success=False`` with the reason."""
-        return behind_boundary(what, work, self._count_rejection)
+    def rejection_reason(self, what: str, exc: Exception) -> str:
+        """``<input>: <message>``, numbers replaced: one kind of problem, one name."""
+        return f"{what}: {_NUMBER.sub('#', str(exc))[:80]}"
 
-    def _count_rejection(self, what: str, exc: Exception) -> None:
-        """Log and count a refused input (or failed timer / service) by reason."""
-        if isinstance(exc, H2OError):
-            reason = f"{what}: {_NUMBER.sub('#', str(exc))[:80]}"
-            self.get_logger().warning(f"{what} rejected: {exc}", throttle_duration_sec=1.0)
-        else:  # a bug, not bad input: say so loudly, and keep running
-            reason = f"{what}: unexpected {type(exc).__name__}"
-            self.get_logger().error(f"{what}: unexpected {type(exc).__name__}: {exc}",
-                                    throttle_duration_sec=1.0)
-        self.rejected[reason] += 1
+    def record_rejection(self, reason: str, exc: Exception) -> None:
+        """Counted in :attr:`rejected`, unless the mapper counted it under its own reason."""
+        before = self._mapper_rejections
+        counted = before is not None and sum(self.mapper.rejected.values()) != before
+        if not (isinstance(exc, H2OError) and counted):
+            self.rejected[reason] += 1
 
     def _make_interfaces(self) -> None:
-        depth = int(self.p("input_queue_depth"))
-        sensor = QoSProfile(depth=depth, reliability=ReliabilityPolicy.BEST_EFFORT)
-        reliable = QoSProfile(depth=int(self.p("loop_closure_queue_depth")),
+        c = self.config
+        sensor = QoSProfile(depth=c.input_queue_depth, reliability=ReliabilityPolicy.BEST_EFFORT)
+        reliable = QoSProfile(depth=c.loop_closure_queue_depth,
                               reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        specs = (("odometry", Odometry, "odom", self.on_odom, sensor),
-                 ("loop_closure", Odometry, "loop_closure", self.on_loop_closure, reliable),
-                 ("gps", NavSatFix, "gps/fix", self.on_gps, sensor))
-        #: Resolved topic of each input.
-        self.input_topics = {
-            what: counted_subscription(self, self.inputs[what], msg_type, topic, callback,
-                                       qos).topic_name
-            for what, msg_type, topic, callback, qos in specs}
-        self.publishers_by_key = {
-            "poses": self.create_publisher(PoseArray, "~/graph/poses", latched),
-            "path": self.create_publisher(PathMsg, "~/graph/path", latched),
-            "markers": self.create_publisher(MarkerArray, "~/graph/markers", latched),
-            "pose": self.create_publisher(PoseStamped, "~/pose", 10),
-            "map_to_odom": self.create_publisher(TransformStamped, "~/map_to_odom", 10),
-            "diagnostics": self.create_publisher(DiagnosticArray, "/diagnostics", 10),
-        }
-        if self._tf_cls is not None:
-            self.publishers_by_key["tf"] = self.create_publisher(self._tf_cls, "/tf", 100)
-        else:
-            self.get_logger().warning(
-                "tf2_msgs is not installed: map->odom goes to ~/map_to_odom only, not /tf")
-        guard = self._boundary
+        self.subscribe("odometry", Odometry, "odom", self.on_odom, sensor)
+        self.subscribe("loop_closure", Odometry, "loop_closure", self.on_loop_closure, reliable)
+        self.subscribe("gps", NavSatFix, "gps/fix", self.on_gps, sensor)
+        self.advertise("poses", PoseArray, "~/graph/poses", latched)
+        self.advertise("path", PathMsg, "~/graph/path", latched)
+        self.advertise("markers", MarkerArray, "~/graph/markers", latched)
+        self.advertise("pose", PoseStamped, "~/pose", 10)
+        self.advertise("map_to_odom", TransformStamped, "~/map_to_odom", 10)
+        self.advertise_diagnostics()
+        self.advertise_tf("map->odom goes to ~/map_to_odom only, not /tf")
+        guard = self.boundary
         self.create_service(Trigger, "~/save_map", guard("save_map", self._srv_save))
         self.create_service(Trigger, "~/exact_solve", guard("exact_solve", self._srv_exact))
         self.create_service(Trigger, "~/reset", guard("reset", self._srv_reset))
         self.create_service(SetBool, "~/pause", guard("pause", self._srv_pause))
-        self.create_timer(float(self.p("graph_publish_period")),
-                          guard("graph_timer", self._graph_timer))
-        self.create_timer(float(self.p("transform_publish_period")),
+        self.create_timer(c.graph_publish_period, guard("graph_timer", self._graph_timer))
+        self.create_timer(c.transform_publish_period,
                           guard("map_to_odom_timer", self._map_to_odom_timer))
-        self.create_timer(float(self.p("diagnostics_period")),
+        self.create_timer(c.diagnostics_period,
                           guard("diagnostics_timer", self._diagnostics_timer))
-        self.create_timer(float(self.p("idle_period")), guard("idle_timer", self._idle_timer))
+        self.create_timer(c.idle_period, guard("idle_timer", self._idle_timer))
 
     def _log_ready(self) -> None:
         """One line at start-up: the node is up, the topics it reads and writes, and the
         parameters that decide its cost."""
-        out = {key: pub.topic_name for key, pub in self.publishers_by_key.items()}
-        budget = float(self.p("budget_ms"))
+        out, c = self.output_topics, self.config
+        budget = c.mapper.budget_ms
         solves = "exact solves in a worker process" if budget > 0.0 else (
             "every edge solved in full, deterministic")
-        tf = " and /tf" if "tf" in out and self.p("publish_tf") else ""
+        tf = " and /tf" if "tf" in out and c.publish_tf else ""
         self.get_logger().info(
             f"{self.get_fully_qualified_name()} ready: in "
             + ", ".join(f"{topic} ({what})" for what, topic in self.input_topics.items())
             + f"; out {out['poses']}, {out['path']}, {out['markers']}, {out['pose']}, "
             f"{out['map_to_odom']}{tf}, {out['diagnostics']}; budget_ms {budget:g} "
-            f"({solves}), robust {str(bool(self.p('robust'))).lower()}, queue depths "
-            f"{self.p('input_queue_depth')} (odometry, GPS) / "
-            f"{self.p('loop_closure_queue_depth')} (loop closures), map_frame "
-            f"{self.p('map_frame')}, map_file {str(self.p('map_file')) or 'unset'}")
+            f"({solves}), robust {str(c.mapper.robust).lower()}, queue depths "
+            f"{c.input_queue_depth} (odometry, GPS) / "
+            f"{c.loop_closure_queue_depth} (loop closures), map_frame "
+            f"{c.map_frame}, map_file {c.map_file or 'unset'}")
 
-    # -- parameters at run time -----------------------------------------------------------------
-
-    def _check_parameters(self, params: list[Parameter]) -> SetParametersResult:
-        changed = {p.name: p.value for p in params}
-        frozen = sorted(set(changed) - RUNTIME)
-        if frozen:
-            return SetParametersResult(successful=False,
-                                       reason=f"{frozen} take effect only at start-up")
-        return SetParametersResult(successful=True)
-
-    def _apply_parameters(self, params: list[Parameter]) -> None:
-        config = self.mapper_config()
-        self.mapper.config = replace(self.mapper.config, **{
-            f.name: getattr(config, f.name) for f in fields(MapperConfig)})
-        self.get_logger().info(
-            "parameters changed: " + ", ".join(f"{p.name}={p.value}" for p in params))
+    def on_config_change(self, old: H2ONodeConfig) -> None:
+        """The mapper takes its new settings whole (a budget, keyframe or gate change)."""
+        self.mapper.config = self.config.mapper
 
     # -- inputs -------------------------------------------------------------------------------
 
@@ -418,33 +246,21 @@ class H2ONode(Node):
             self._handle(*self._held.popleft())
 
     def _handle(self, what: str, handler: Callable[[], None]) -> None:
-        """Run one input's handling, timing it. Bad input is logged, counted and survived,
-        and so is any other exception (counted as ``<what>: unexpected <Type>``); validation
-        comes first in the mapper, so a refused input leaves nothing behind in the track or
-        the graph."""
+        """Run one input's handling behind the boundary, timing it. Validation comes first in
+        the mapper, so a refused input leaves nothing behind in the track or the graph."""
         start = time.perf_counter()
-        counted = sum(self.mapper.rejected.values())
-        counts = self.inputs[what]
-        try:
-            if self.paused:
-                counts.discarded += 1
-            else:
-                handler()
-                counts.accepted += 1
-        except Exception as exc:  # the boundary: no message ends the node (issue 13)
-            counts.rejected += 1
-            if isinstance(exc, H2OError) and sum(self.mapper.rejected.values()) != counted:
-                # the mapper counted it under its own reason
-                self.get_logger().warning(f"{what} rejected: {exc}", throttle_duration_sec=1.0)
-            else:
-                self._count_rejection(what, exc)
+        self._mapper_rejections = sum(self.mapper.rejected.values())
+        if self.paused:
+            self.inputs[what].discarded += 1
+        else:
+            self.guarded(what, handler)
+        self._mapper_rejections = None
         for held, reason in self.mapper.released_errors:  # taken in earlier, refused now
             self.inputs[held].move("rejected")
-            self.get_logger().warning(f"held {held} rejected: {reason}",
-                                      throttle_duration_sec=1.0)
+            self.log_throttled(f"held {held}", f"held {held} rejected: {reason}")
         self.mapper.released_errors.clear()
         elapsed_ms = 1e3 * (time.perf_counter() - start)
-        budget_ms = float(self.p("budget_ms"))
+        budget_ms = self.config.mapper.budget_ms
         self.times.add(elapsed_ms, None if self.paused or budget_ms == 0.0 else budget_ms)
 
     def _step(self, start: float) -> None:
@@ -457,7 +273,7 @@ class H2ONode(Node):
         and the exact solution of the graph (merged, or started in the worker). It delays
         the next input by at most ``idle_budget_ms`` and never runs when nothing waits, so
         it costs nothing once the map is at its optimum."""
-        budget_ms = float(self.p("idle_budget_ms"))
+        budget_ms = self.config.idle_budget_ms
         h2o = self.mapper.h2o
         waiting = h2o.pending or h2o.converger.busy or h2o.converger.outside()
         if self.paused or budget_ms == 0.0 or not waiting:
@@ -483,7 +299,7 @@ class H2ONode(Node):
         odom = self.health["odometry"]
         if time.monotonic_ns() - self._last_odom_handled_ns > 200_000_000:
             return False
-        allowed = max(float(self.p("idle_budget_ms")), 2.0 * float(self.p("budget_ms")))
+        allowed = max(self.config.idle_budget_ms, 2.0 * self.config.mapper.budget_ms)
         return odom.lag_ms > allowed
 
     def _idle_timer(self) -> None:
@@ -521,9 +337,7 @@ class H2ONode(Node):
         start = time.perf_counter()
 
         def handle() -> None:
-            sx, syaw = float(self.p("loop_default_sigma_xy")), float(
-                self.p("loop_default_sigma_yaw"))
-            default = ma.planar_covariance(sx, sx, syaw, unobserved_variance=1.0)
+            default = self.config.messages.loop_default_covariance()
             closure = ma.loop_closure_from_msg(msg, default_covariance=default)
             cov3 = closure.covariance[np.ix_(geo.PLANAR_DOF, geo.PLANAR_DOF)]
             delta = np.array([closure.t[0], closure.t[1], float(geo.matrix_to_yaw(closure.R))])
@@ -547,11 +361,11 @@ class H2ONode(Node):
                 self.mapper.datum = (self._datum.lat_deg, self._datum.lon_deg,
                                      self._datum.alt_m)
                 self.get_logger().info(f"GPS datum set from the first good fix: {self._datum}")
+            gps = self.config.messages
             fix = ma.gps_fix_from_msg(
-                msg, self._datum, unknown_sigma_m=float(self.p("gps_unknown_sigma")),
-                sigma_floor_m=float(self.p("gps_sigma_floor")),
-                max_sigma_m=float(self.p("gps_max_sigma")),
-                zero_altitude=bool(self.p("zero_altitude")))
+                msg, self._datum, unknown_sigma_m=gps.gps_unknown_sigma,
+                sigma_floor_m=gps.gps_sigma_floor, max_sigma_m=gps.gps_max_sigma,
+                zero_altitude=gps.zero_altitude)
             self._last_gps_ns = stamp
             self.mapper.add_gps(fix.stamp_ns, fix.enu, fix.covariance)
             self._step(start)
@@ -560,13 +374,6 @@ class H2ONode(Node):
 
     # -- outputs ------------------------------------------------------------------------------
 
-    def emit(self, key: str, msg: Any) -> None:
-        """Publish on the output ``key`` and hand the message to the sink, if any."""
-        publisher = self.publishers_by_key[key]
-        publisher.publish(msg)
-        if self.sink is not None:
-            self.sink(publisher.topic_name, msg)
-
     def publish_pose(self) -> None:
         """The newest odometry sample's pose in ``map``."""
         latest = self.mapper.latest_pose(self._correction())
@@ -574,7 +381,7 @@ class H2ONode(Node):
             return
         stamp, pose = latest
         msg = PoseStamped()
-        ma.fill_header(msg.header, stamp, str(self.p("map_frame")))
+        ma.fill_header(msg.header, stamp, self.config.map_frame)
         ma.fill_pose(msg.pose, geo.yaw_to_matrix(pose[2]), np.array([pose[0], pose[1], 0.0]))
         self.emit("pose", msg)
 
@@ -613,11 +420,11 @@ class H2ONode(Node):
             self._map_revision = self.mapper.map_revision()
         x, y, yaw = self._map_to_odom
         msg = ma.fill_transform(TransformStamped, geo.yaw_to_matrix(yaw), np.array([x, y, 0.0]),
-                                stamp_ns=self._last_stamp_ns, frame_id=str(self.p("map_frame")),
-                                child_frame_id=str(self.p("odom_frame")))
+                                stamp_ns=self._last_stamp_ns, frame_id=self.config.map_frame,
+                                child_frame_id=self.config.odom_frame)
         self.emit("map_to_odom", msg)
-        if self._tf_cls is not None and self.p("publish_tf"):
-            self.emit("tf", ma.fill_tf_message(self._tf_cls, [msg]))
+        if self.tf_message is not None and self.config.publish_tf:
+            self.emit_tf(msg)
 
     def _graph_timer(self) -> None:
         if not warmup.is_ready():
@@ -644,7 +451,7 @@ class H2ONode(Node):
         keys = {"poses", "path", "markers"} if keys is None else keys
         self._graph_dirty = False
         graph = self.mapper.graph()
-        frame = str(self.p("map_frame"))
+        frame = self.config.map_frame
         stamp = self._last_stamp_ns
         if "poses" in keys:
             self.emit("poses", ma.fill_pose_array(PoseArray, graph.R, graph.t, stamp_ns=stamp,
@@ -704,7 +511,7 @@ class H2ONode(Node):
         the last value, with its age)."""
         if not warmup.is_ready():
             return self._warming_report()
-        budget = float(self.p("budget_ms"))
+        budget = self.config.mapper.budget_ms
         summary = self.times.summary()
         exact = self.mapper.h2o.converger.state
         values: dict[str, object] = {
@@ -721,7 +528,7 @@ class H2ONode(Node):
             "paused": self.paused,
             "warming_up": False,
             "held_while_warming": self.held_while_warming,
-            "tf_available": self._tf_cls is not None,
+            "tf_available": self.tf_message is not None,
             "gps_datum": "unset" if self._datum is None else
             f"{self._datum.lat_deg:.8f}, {self._datum.lon_deg:.8f}",
         }
@@ -761,15 +568,14 @@ class H2ONode(Node):
 
     def publish_diagnostics(self, refresh_chi2: bool = True) -> None:
         """``/diagnostics`` (``refresh_chi2``: as :meth:`diagnostics`)."""
-        self.emit("diagnostics", ma.fill_diagnostic_array(
-            DiagnosticArray, [self.diagnostics(refresh_chi2)], stamp_ns=self._last_stamp_ns))
+        self.emit_report(self.diagnostics(refresh_chi2), self._last_stamp_ns)
 
     # -- services -----------------------------------------------------------------------------
 
     def _srv_save(self, request: Any, response: Any) -> Any:
         if not warmup.is_ready():
             return _warming(response)
-        path = str(self.p("map_file"))
+        path = self.config.map_file
         if not path:
             response.success, response.message = False, "map_file is not set"
             return response
@@ -795,7 +601,7 @@ class H2ONode(Node):
         if not warmup.is_ready():
             return _warming(response)
         self.mapper.close()
-        self.mapper = Mapper(self.mapper_config())
+        self.mapper = Mapper(self.config.mapper)
         self._datum = self._configured_datum()
         self._last_gps_ns = None
         self.rejected.clear()

@@ -5,8 +5,8 @@ callbacks and publishes). It is planar: poses are ``(x, y, yaw)`` in ``map`` (EN
 is used) and odometry is ``(x, y, yaw)`` in ``odom``.
 
 * **Keyframes**: an odometry sample becomes a graph node when the robot has moved
-  ``keyframe_distance_m`` or turned ``keyframe_angle_rad`` since the last one, or
-  ``keyframe_period_s`` has passed. Consecutive keyframes are joined by their odometry
+  ``keyframe_distance`` or turned ``keyframe_angle`` since the last one, or
+  ``keyframe_period`` has passed. Consecutive keyframes are joined by their odometry
   increment, with a noise model that grows with distance and turn (wheel odometry reports
   the covariance of its integrated pose, which says nothing about one increment).
 * **Loop closures** address poses by node id or by stamp (the convention of
@@ -41,6 +41,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -76,52 +77,79 @@ MAX_SIGMA = 1e6
 GPS_GATE_SIGMA_M = 2.0
 
 
-@dataclass
+@dataclass(frozen=True)
 class MapperConfig:
-    """What the node's parameters set (see ``config/h2o.yaml`` for ranges).
+    """The mapper's settings; ``h2o_node`` declares each documented field as the parameter of
+    the same name (``metadata``: :mod:`ros_node_base.params`), so names carry their unit in
+    the description, not the name.
 
     Attributes:
-        keyframe_distance_m, keyframe_angle_rad, keyframe_period_s: a new keyframe after
-            this much travel, turn or time (``0`` disables a criterion).
+        budget_ms: per-callback solver time; ``0`` solves every new edge in full.
+        d_max: most nodes solved for per edge (``0``: as many as the budget allows).
+        keyframe_distance, keyframe_angle, keyframe_period: a new keyframe after this much
+            travel (m), turn (rad) or time (s); ``0`` disables a criterion.
         odom_sigma_per_m: translation σ of an odometry increment per metre travelled.
         odom_yaw_sigma_per_rad, odom_yaw_sigma_per_m: heading σ per radian turned and per
             metre travelled.
         odom_min_sigma_m, odom_min_sigma_rad: floors of those σ.
         loop_gate_chi2: largest accepted χ² of a loop closure (``inf`` accepts all).
-        loop_stamp_tolerance_s: how far a stamp may lie from its nearest keyframe.
-        gps_time_tolerance_s: how far a fix may lie in time from the keyframe it lands on.
-        gps_lever_arm_m: antenna position ``(x, y)`` in ``base_link``.
-        budget_ms: per-callback solver time; ``None`` solves every new edge in full.
-        d_max: most nodes solved for per edge (``None``: as many as the budget allows).
-        background: where the exact solves that take the map to its optimum run
-            (``OnlineConfig.background``): ``process``, ``inline`` or ``off``.
         robust: loop closures and GPS fixes are possible outliers: the exact solves weigh
             them by GNC-TLS (:mod:`h2o_slam.core.robust`) and revise every decision with
             each solve; a closure or fix the χ² gate doubts is kept in the graph at weight
             0 (held) for them to re-admit. ``False``: least squares, and the gate refuses.
+        loop_stamp_tolerance: how far (s) a stamp may lie from its nearest keyframe.
+        gps_time_tolerance: how far (s) a fix may lie in time from the keyframe it lands on.
+        gps_lever_arm: antenna position ``(x, y)`` in ``base_link`` (m).
+        background: where the exact solves that take the map to its optimum run
+            (``OnlineConfig.background``): ``process``, ``inline`` or ``off``; ``None``
+            (the node's choice): a worker process when budgeted, inline when not.
     """
 
-    keyframe_distance_m: float = 0.5
-    keyframe_angle_rad: float = 0.2
-    keyframe_period_s: float = 0.0
-    odom_sigma_per_m: float = 0.05
-    odom_yaw_sigma_per_rad: float = 0.05
-    odom_yaw_sigma_per_m: float = 0.01
+    budget_ms: float = field(default=5.0, metadata={
+        "doc": "Solver time per callback in ms; 0 solves every new edge in full and the graph "
+               "exactly, inline, on a fixed schedule (replays: deterministic); > 0 at start-up "
+               "starts the exact solver's worker process.",
+        "range": (0.0, 1000.0), "runtime": True})
+    d_max: int = field(default=0, metadata={
+        "doc": "Most nodes solved per edge; 0 lets the budget decide.",
+        "range": (0, 1_000_000), "runtime": True})
+    keyframe_distance: float = field(default=0.5, metadata={
+        "doc": "New keyframe after this travel in m; 0 disables.",
+        "range": (0.0, 100.0), "runtime": True})
+    keyframe_angle: float = field(default=0.2, metadata={
+        "doc": "New keyframe after this turn in rad; 0 disables.",
+        "range": (0.0, 6.3), "runtime": True})
+    keyframe_period: float = field(default=0.0, metadata={
+        "doc": "New keyframe after this many s; 0 disables.",
+        "range": (0.0, 3600.0), "runtime": True})
+    odom_sigma_per_m: float = field(default=0.05, metadata={
+        "doc": "Odometry translation sigma per metre travelled.", "range": (0.0, 10.0)})
+    odom_yaw_sigma_per_rad: float = field(default=0.05, metadata={
+        "doc": "Odometry heading sigma per radian turned.", "range": (0.0, 10.0)})
+    odom_yaw_sigma_per_m: float = field(default=0.01, metadata={
+        "doc": "Odometry heading sigma (rad) per metre travelled.", "range": (0.0, 10.0)})
     odom_min_sigma_m: float = 0.01
     odom_min_sigma_rad: float = 0.002
-    loop_gate_chi2: float = CHI2_3DOF_999
-    loop_stamp_tolerance_s: float = 0.5
-    gps_time_tolerance_s: float = 0.2
-    gps_lever_arm_m: tuple[float, float] = (0.0, 0.0)
-    budget_ms: float | None = 5.0
-    d_max: int | None = None
-    background: str = "inline"
-    robust: bool = True
+    loop_gate_chi2: float = field(default=CHI2_3DOF_999, metadata={
+        "doc": "Largest accepted loop-closure chi2 (3 dof; 16.27 is the 99.9 % quantile).",
+        "range": (0.1, 1e12), "runtime": True})
+    robust: bool = field(default=True, metadata={
+        "doc": "Weigh loop closures and GPS fixes as possible outliers (GNC-TLS in the exact "
+               "solves, every decision revised by each solve); a closure or fix the gate "
+               "doubts is held at weight 0 instead of refused. false: least squares, the gate "
+               "refuses."})
+    loop_stamp_tolerance: float = field(default=0.5, metadata={
+        "doc": "Seconds a loop-closure stamp may lie from a keyframe.", "range": (0.0, 60.0)})
+    gps_time_tolerance: float = field(default=0.2, metadata={
+        "doc": "Seconds a fix may lie from the keyframe it lands on.", "range": (0.0, 10.0)})
+    gps_lever_arm: tuple[float, float] = field(default=(0.0, 0.0), metadata={
+        "doc": "Antenna position [x, y] in base_frame, m."})
+    background: Literal["process", "inline", "off"] | None = None
 
     def __post_init__(self) -> None:
-        for name in ("keyframe_distance_m", "keyframe_angle_rad", "keyframe_period_s",
+        for name in ("budget_ms", "keyframe_distance", "keyframe_angle", "keyframe_period",
                      "odom_sigma_per_m", "odom_yaw_sigma_per_rad", "odom_yaw_sigma_per_m",
-                     "loop_stamp_tolerance_s", "gps_time_tolerance_s"):
+                     "loop_stamp_tolerance", "gps_time_tolerance"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
@@ -130,15 +158,24 @@ class MapperConfig:
                 raise ValueError(f"{name} must be > 0 (a zero sigma is infinite stiffness)")
         if not self.loop_gate_chi2 > 0.0:
             raise ValueError(f"loop_gate_chi2 must be > 0, got {self.loop_gate_chi2!r}")
-        if self.budget_ms is not None and not self.budget_ms > 0.0:
-            raise ValueError(f"budget_ms must be > 0, got {self.budget_ms!r}")
-        if self.d_max is not None and self.d_max < 1:
-            raise ValueError(f"d_max must be >= 1, got {self.d_max!r}")
+        if self.d_max < 0:
+            raise ValueError(f"d_max must be >= 0, got {self.d_max!r}")
+        if len(self.gps_lever_arm) != 2:
+            raise InputError(f"gps_lever_arm: expected [x, y], got {list(self.gps_lever_arm)}")
 
     @property
     def budget_s(self) -> float | None:
         """``budget_ms`` in seconds (``None``: no limit), as :meth:`Mapper.step` takes it."""
-        return None if self.budget_ms is None else self.budget_ms * 1e-3
+        return self.budget_ms * 1e-3 if self.budget_ms else None
+
+    @property
+    def solve_in(self) -> Literal["process", "inline", "off"]:
+        """Where the exact solves run: :attr:`background`, or by default a worker process
+        when budgeted (callbacks stay within the budget) and inline when not (deterministic;
+        no worker needed)."""
+        if self.background is not None:
+            return self.background
+        return "process" if self.budget_ms else "inline"
 
 
 class OdometryTrack:
@@ -282,8 +319,8 @@ class Mapper:
         self._solver_config = solver
         robust = RobustConfig() if self.config.robust else None
         self.h2o = OnlineH2O(planar=True, config=solver,
-                             online=OnlineConfig(d_max=self.config.d_max,
-                                                 background=self.config.background,
+                             online=OnlineConfig(d_max=self.config.d_max or None,
+                                                 background=self.config.solve_in,
                                                  robust=robust))
         self.keyframes = Keyframes()
         self.track = OdometryTrack()
@@ -362,9 +399,9 @@ class Mapper:
         cfg = self.config
         d = planar_between(self.keyframes.odom[-1], pose)
         dt = (stamp_ns - self.keyframes.stamps[-1]) * 1e-9
-        return bool((cfg.keyframe_distance_m and math.hypot(d[0], d[1]) >= cfg.keyframe_distance_m)
-                    or (cfg.keyframe_angle_rad and abs(d[2]) >= cfg.keyframe_angle_rad)
-                    or (cfg.keyframe_period_s and dt >= cfg.keyframe_period_s))
+        return bool((cfg.keyframe_distance and math.hypot(d[0], d[1]) >= cfg.keyframe_distance)
+                    or (cfg.keyframe_angle and abs(d[2]) >= cfg.keyframe_angle)
+                    or (cfg.keyframe_period and dt >= cfg.keyframe_period))
 
     def _add_keyframe(self, stamp_ns: int, pose: Array) -> int:
         kf = self.keyframes
@@ -494,11 +531,11 @@ class Mapper:
         if not n:
             raise self.reject("loop_unknown_stamp", "loop closure before the first keyframe")
         node, gap = self.keyframes.nearest(stamp)
-        if gap > self.config.loop_stamp_tolerance_s:
+        if gap > self.config.loop_stamp_tolerance:
             raise self.reject(
                 "loop_unknown_stamp",
                 f"loop closure stamp {stamp} is {gap:.3f} s from the nearest keyframe "
-                f"(tolerance {self.config.loop_stamp_tolerance_s} s)")
+                f"(tolerance {self.config.loop_stamp_tolerance} s)")
         if not self.track.covers(stamp):
             return node, np.zeros(3)
         return node, planar_between(self.keyframes.odom[node], self.track.at(stamp))
@@ -558,7 +595,7 @@ class Mapper:
             return None
         node = self._gps_node(stamp_ns)
         R, _ = self.h2o.solver.world_pose(node)
-        lever = np.array([*self.config.gps_lever_arm_m, 0.0])
+        lever = np.array([*self.config.gps_lever_arm, 0.0])
         meas_t = enu - R @ lever
         if not np.all(np.isfinite(meas_t)):
             raise self.reject("gps_not_finite", f"GPS fix at {stamp_ns}: antenna position "
@@ -590,7 +627,7 @@ class Mapper:
         return bool(chi2 <= self.config.loop_gate_chi2)
 
     def _gps_node(self, stamp_ns: int) -> int:
-        tol = self.config.gps_time_tolerance_s
+        tol = self.config.gps_time_tolerance
         best = (math.inf, -1)
         if self.keyframes.stamps:
             node, gap = self.keyframes.nearest(stamp_ns)
@@ -611,16 +648,17 @@ class Mapper:
     def step(self, budget_s: float | None) -> StepReport:
         """One solver step within ``budget_s`` seconds (``None``: no limit; the configured
         budget is ``self.config.budget_s``)."""
-        if self.h2o.online.d_max != self.config.d_max:
-            self.h2o.online = replace(self.h2o.online, d_max=self.config.d_max)
+        d_max = self.config.d_max or None
+        if self.h2o.online.d_max != d_max:
+            self.h2o.online = replace(self.h2o.online, d_max=d_max)
         self.last_report = self.h2o.step(budget_s)
         return self.last_report
 
     def callback_step(self, started_s: float) -> StepReport:
         """The step that ends an input's callback: what is left of ``budget_ms`` since the
         callback began at ``started_s`` (``time.perf_counter()``), so the callback as a whole
-        keeps the budget (``budget_ms`` of ``None``: no limit)."""
-        if self.config.budget_ms is None:
+        keeps the budget (``budget_ms`` of 0: no limit)."""
+        if not self.config.budget_ms:
             return self.step(None)
         left_s = 1e-3 * self.config.budget_ms - (time.perf_counter() - started_s)
         return self.step(max(left_s, 0.0))

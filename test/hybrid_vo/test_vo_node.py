@@ -36,9 +36,11 @@ from std_srvs.srv import SetBool, Trigger
 
 import msg_adapters as ma
 from hybrid_vo.errors import ConfigError
+from hybrid_vo.node_config import VoNodeConfig
 from hybrid_vo.sim.messages import DEFAULT_START_NS, StreamMessage, Topics, drive_messages
 from hybrid_vo.sim.world import Drive, make_drive, scenario, wrap_angle
-from hybrid_vo.vo_node import PARAMETERS, HybridVoNode, main
+from hybrid_vo.vo_node import HybridVoNode, main
+from ros_node_base.params import param_specs
 
 REPO = Path(__file__).resolve().parents[2]
 TURN = (math.pi / 2) / 3.0
@@ -96,15 +98,15 @@ class Rig:
         self.tester.create_subscription(Odometry, f"{self.ns}/odometry/hybrid",
                                         self.odometry.append, reliable)
         self.tester.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, reliable)
-        if self.node._tf_class is not None:
-            self.tester.create_subscription(self.node._tf_class, "/tf", self._on_tf, reliable)
+        if self.node.tf_message is not None:
+            self.tester.create_subscription(self.node.tf_message, "/tf", self._on_tf, reliable)
         self.tester.create_subscription(Image, f"{self.ns}/{self.name}/debug_image",
                                         self.debug_images.append, sensor)
         self.spin_until(self._connected, "discovery")
 
     def _connected(self) -> bool:
         return (all(p.get_subscription_count() > 0 for p in self.pubs.values())
-                and self.node._publishers_by_key["odometry"].get_subscription_count() > 0)
+                and self.node.publishers_by_key["odometry"].get_subscription_count() > 0)
 
     def _on_diag(self, msg: Any) -> None:
         stamp = ma.stamp_ns(msg.header)
@@ -227,7 +229,7 @@ def test_corrected_odometry_beats_wheel_odometry_under_slip(rig_factory) -> None
     assert 0.0 < first.pose.covariance[35] < last.pose.covariance[35]
     assert last.twist.twist.linear.x == pytest.approx(1.3, abs=0.2)
     # TF (when tf2_msgs is installed) and the debug image follow the odometry.
-    if rig.node._tf_class is not None:
+    if rig.node.tf_message is not None:
         rig.spin_until(lambda: len(rig.transforms) == len(drive), "every transform")
         assert ma.stamp_ns(rig.transforms[-1].header) == frame_stamps[-1]
         assert rig.transforms[-1].header.frame_id == rig.odom_frame
@@ -454,13 +456,15 @@ def test_compressed_images(context) -> None:
 
 def test_config_yaml_lists_every_parameter_and_starts_the_node(context) -> None:
     loaded = parameter_dict_from_yaml_file(str(REPO / "config" / "hybrid_vo.yaml"))
-    assert set(loaded) == {spec.name for spec in PARAMETERS}
+    specs = param_specs(VoNodeConfig)
+    assert set(loaded) == {spec.name for spec in specs}
     node = HybridVoNode(f"yaml_{uuid.uuid4().hex[:8]}", context=context,
                         parameter_overrides=[Parameter.from_parameter_msg(p)
                                              for p in loaded.values()])
     try:
-        for spec in PARAMETERS:  # the YAML repeats the defaults
-            assert node.get_parameter(spec.name).value == spec.default, spec.name
+        for spec in specs:  # the YAML repeats the defaults
+            assert node.get_parameter(spec.name).value == spec.ros_default, spec.name
+        assert node.config == VoNodeConfig()
         descriptor = node.describe_parameter("odometer.num_patches")
         assert descriptor.description and descriptor.integer_range[0].to_value == 64
         assert node.describe_parameter("camera_pitch").floating_point_range[0].to_value == 1.5

@@ -25,7 +25,7 @@ from h2o_slam.ros.mapper import Mapper, MapperConfig, restore
 
 REPO = Path(__file__).resolve().parents[2]
 NS = 10**8
-CONFIG = MapperConfig(budget_ms=None, background="off")
+CONFIG = MapperConfig(budget_ms=0.0, background="off")
 
 
 def drive(mapper: Mapper, start: int, count: int) -> None:

@@ -60,7 +60,7 @@ def final_error(mapper: Mapper, truth: np.ndarray) -> float:
 
 
 def test_keyframes_follow_distance_and_angle() -> None:
-    mapper = Mapper(MapperConfig(keyframe_distance_m=1.0, keyframe_angle_rad=0.5))
+    mapper = Mapper(MapperConfig(keyframe_distance=1.0, keyframe_angle=0.5))
     truth = square_drive(laps=1)
     feed(mapper, truth)
     # 40 m of sides at 1 m per keyframe, plus one per 90° corner, plus the first.
@@ -175,7 +175,7 @@ def test_running_path_covariance_equals_the_sum_over_the_chain(seed: int) -> Non
 
 def test_stamp_references_are_carried_onto_keyframes() -> None:
     truth = square_drive(laps=1)
-    mapper = Mapper(MapperConfig(keyframe_distance_m=1.0, loop_gate_chi2=math.inf))
+    mapper = Mapper(MapperConfig(keyframe_distance=1.0, loop_gate_chi2=math.inf))
     feed(mapper, truth)
     # Stamps 1 and 2 samples past keyframes: the stored measurement must join the keyframes.
     i, j = 9, 150
@@ -300,7 +300,7 @@ def test_load_refuses_a_missing_sidecar(tmp_path) -> None:
 def test_exact_solve_reaches_the_least_squares_optimum() -> None:
     truth = square_drive()
     odom = drifting_odometry(truth)
-    mapper = Mapper(MapperConfig(loop_gate_chi2=math.inf, budget_ms=None))
+    mapper = Mapper(MapperConfig(loop_gate_chi2=math.inf, budget_ms=0.0))
     feed(mapper, odom)
     n = len(truth) - 1
     mapper.add_loop_closure(stamp(0), stamp(n), planar_between(truth[0], truth[n]),
@@ -316,8 +316,8 @@ def test_lookups_by_stamp_agree_with_a_scan_of_every_sample() -> None:
     """``Keyframes.nearest`` bisects and ``OdometryTrack.at`` interpolates between the two
     neighbouring samples (O(log n) on a graph of 20,000 keyframes); both answer as a scan."""
     rng = np.random.default_rng(4)
-    mapper = Mapper(MapperConfig(keyframe_distance_m=0.0, keyframe_angle_rad=0.0,
-                                 keyframe_period_s=0.35, budget_ms=None))
+    mapper = Mapper(MapperConfig(keyframe_distance=0.0, keyframe_angle=0.0,
+                                 keyframe_period=0.35, budget_ms=0.0))
     stamps = START + np.cumsum(rng.integers(NS // 50, NS // 5, size=120))
     poses = np.cumsum(rng.normal(0.0, 0.1, size=(120, 3)), axis=0)
     for s, pose in zip(stamps, poses, strict=True):
@@ -341,7 +341,7 @@ def test_lookups_by_stamp_agree_with_a_scan_of_every_sample() -> None:
 
 def test_latest_pose_applies_the_correction_it_is_given() -> None:
     truth = square_drive(laps=1)
-    mapper = Mapper(MapperConfig(budget_ms=None))
+    mapper = Mapper(MapperConfig(budget_ms=0.0))
     feed(mapper, drifting_odometry(truth)[:30])
     exact = mapper.latest_pose()
     assert exact is not None
@@ -379,7 +379,7 @@ def add_true(mapper: Mapper, truth: np.ndarray, pairs: list[tuple[int, int]]) ->
 
 def test_a_gated_closure_is_held_and_the_map_survives(drive) -> None:
     truth, odom = drive
-    mapper = Mapper(MapperConfig(budget_ms=None))
+    mapper = Mapper(MapperConfig(budget_ms=0.0))
     feed(mapper, odom)
     before = mapper.poses().copy()
     n = len(truth) - 1
@@ -402,11 +402,11 @@ def test_a_closure_accepted_early_is_dropped_when_true_ones_contradict_it(drive)
     robust solve drops it and the map returns to the outlier-free one."""
     truth, odom = drive
     pairs = closures(truth)
-    clean = Mapper(MapperConfig(budget_ms=None))
+    clean = Mapper(MapperConfig(budget_ms=0.0))
     feed(clean, odom)
     add_true(clean, truth, pairs)
     clean.exact_solve()
-    mapper = Mapper(MapperConfig(budget_ms=None))
+    mapper = Mapper(MapperConfig(budget_ms=0.0))
     feed(mapper, odom)
     a, b = pairs[0]
     false = planar_between(truth[a], truth[b]) + np.array([1.5, -1.0, 0.1])
@@ -427,7 +427,7 @@ def test_a_true_closure_held_back_is_readmitted(drive) -> None:
     tight) is held, and the robust solve, which weighs the map's own uncertainty,
     re-admits it."""
     truth, odom = drive
-    mapper = Mapper(MapperConfig(budget_ms=None, loop_gate_chi2=0.01))
+    mapper = Mapper(MapperConfig(budget_ms=0.0, loop_gate_chi2=0.01))
     feed(mapper, odom)
     a, b = closures(truth)[0]
     edge = mapper.add_loop_closure(stamp(a), stamp(b), planar_between(truth[a], truth[b]),
@@ -441,7 +441,7 @@ def test_a_true_closure_held_back_is_readmitted(drive) -> None:
 
 def test_robust_states_survive_save_and_load(drive, tmp_path) -> None:
     truth, odom = drive
-    mapper = Mapper(MapperConfig(budget_ms=None))
+    mapper = Mapper(MapperConfig(budget_ms=0.0))
     feed(mapper, odom)
     n = len(truth) - 1
     wrong = planar_between(truth[n], truth[0]) + np.array([0.0, 0.0, math.pi])
@@ -455,7 +455,7 @@ def test_robust_states_survive_save_and_load(drive, tmp_path) -> None:
     before = _weights_by_edge(mapper)
     key = (int(mapper.h2o.solver.a[held]), int(mapper.h2o.solver.b[held]))
     mapper.close()
-    again = Mapper.load(path, MapperConfig(budget_ms=None))
+    again = Mapper.load(path, MapperConfig(budget_ms=0.0))
     # A restore re-adds the edges in arrival order: each keeps its own weight.
     assert _weights_by_edge(again) == before
     assert again.decisions() == {**mapper.decisions(), "decisions dropped": 0,
@@ -476,7 +476,7 @@ def gps_drive(offset: Callable[[int], np.ndarray | None], laps: int = 2) -> Mapp
     the true position plus ``offset(step)`` (``None``: no fix), solved exactly."""
     truth = square_drive(laps=laps)
     odom = drifting_odometry(truth, yaw_bias_per_step=0.002)
-    mapper = Mapper(MapperConfig(budget_ms=None))
+    mapper = Mapper(MapperConfig(budget_ms=0.0))
     for i in range(len(odom)):
         mapper.add_odometry(START + i * NS // 10, odom[i])
         shift = offset(i)

@@ -29,15 +29,16 @@ from h2o_slam.app.replay import ReplayOptions, format_summary, publish_realtime,
 from h2o_slam.core.errors import H2OError
 from h2o_slam.io.bag_reader import bag_problem
 from h2o_slam.io.topic_map import topic_map
-from h2o_slam.ros.h2o_node import PARAMETERS
+from h2o_slam.ros.node_config import H2ONodeConfig
+from ros_node_base.params import spec_named
 
 PROG = "h2o-replay"
 
 
 def _node_range(parameter: str) -> tuple[float, float]:
-    bounds = next(b for name, _, _, b in PARAMETERS if name == parameter)
-    assert bounds is not None
-    return bounds
+    spec = spec_named(H2ONodeConfig, parameter)
+    assert spec.low is not None and spec.high is not None
+    return spec.low, spec.high
 
 
 #: The node's own range of ``budget_ms``: a replay accepts what a robot would.

@@ -13,7 +13,7 @@ import rclpy
 from rclpy.node import Node
 from std_msgs.msg import Empty
 
-from h2o_slam.ros.node_main import run_node
+from ros_node_base.main import run_node
 
 
 class ShutsDownMidCallback(Node):

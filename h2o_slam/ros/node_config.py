@@ -1,0 +1,102 @@
+"""The configuration tree of ``h2o_node``: every parameter it declares, one frozen snapshot
+(no rclpy here: the tree is read, checked and documented without ROS).
+
+The root holds the node's own settings (frames, output periods, the map file, queues, idle
+steps); :class:`h2o_slam.ros.mapper.MapperConfig` the back end's, :class:`MessageConfig`
+how messages become measurements (loop-closure defaults, GPS). All keep the names users set
+(the groups are flat). Each field's ``metadata`` holds its description, range and whether it
+changes at run time (:mod:`ros_node_base.params`); ``config/h2o.yaml`` and the table in
+``doc/nodes.md`` are written from this tree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import msg_adapters as ma
+from h2o_slam.core.errors import InputError
+from h2o_slam.ros.mapper import MapperConfig
+
+
+@dataclass(frozen=True)
+class MessageConfig:
+    """How loop-closure and GPS messages become measurements (the fields' ``doc``)."""
+
+    loop_default_sigma_xy: float = field(default=0.1, metadata={
+        "doc": "Loop closure sigma (m) when its covariance is all zero.", "range": (1e-6, 100.0)})
+    loop_default_sigma_yaw: float = field(default=0.02, metadata={
+        "doc": "Loop closure sigma (rad) when its covariance is zero.", "range": (1e-6, 10.0)})
+    datum: tuple[float, ...] = field(default=(0.0,), metadata={
+        "doc": "GPS datum [lat_deg, lon_deg, alt_m]; [0.0] takes the first good fix."})
+    zero_altitude: bool = field(default=True, metadata={"doc": "Ignore GPS altitude."})
+    gps_sigma_floor: float = field(default=0.05, metadata={
+        "doc": "Smallest GPS sigma in m (a zero covariance never reaches the solver).",
+        "range": (1e-4, 100.0)})
+    gps_max_sigma: float = field(default=10.0, metadata={
+        "doc": "Fixes with a larger horizontal sigma (m) are dropped.", "range": (1e-3, 1e4)})
+    gps_unknown_sigma: float = field(default=5.0, metadata={
+        "doc": "Sigma (m) for fixes whose covariance type is UNKNOWN.", "range": (1e-3, 1e4)})
+
+    def __post_init__(self) -> None:
+        if len(self.datum) != 3 and self.datum not in ((), (0.0,)):
+            raise InputError(f"datum: expected [lat_deg, lon_deg, alt_m] or [0.0], got "
+                             f"{list(self.datum)}")
+
+    @property
+    def configured_datum(self) -> ma.Datum | None:
+        """The datum set by the parameter (``None``: the first good fix sets it)."""
+        return ma.Datum(*self.datum) if len(self.datum) == 3 else None
+
+    def loop_default_covariance(self) -> np.ndarray:
+        """The covariance a loop closure with an all-zero one gets (6×6, ROS order)."""
+        sxy, syaw = self.loop_default_sigma_xy, self.loop_default_sigma_yaw
+        return ma.planar_covariance(sxy, sxy, syaw, unobserved_variance=1.0)
+
+
+@dataclass(frozen=True)
+class H2ONodeConfig:
+    """Every parameter of ``h2o_node`` (module docstring)."""
+
+    map_frame: str = field(default="map", metadata={
+        "doc": "Frame of the optimized graph (ENU when GPS is used)."})
+    odom_frame: str = field(default="odom", metadata={"doc": "Frame of the incoming odometry."})
+    base_frame: str = field(default="base_link", metadata={"doc": "Robot body frame."})
+    publish_tf: bool = field(default=True, metadata={
+        "doc": "Publish map->odom on /tf.", "runtime": True})
+    transform_publish_period: float = field(default=0.05, metadata={
+        "doc": "Seconds between map->odom publications.", "range": (0.001, 10.0)})
+    graph_publish_period: float = field(default=1.0, metadata={
+        "doc": "Seconds between graph publications.", "range": (0.01, 60.0)})
+    diagnostics_period: float = field(default=1.0, metadata={
+        "doc": "Seconds between /diagnostics publications.", "range": (0.05, 60.0)})
+    mapper: MapperConfig = field(default_factory=MapperConfig, metadata={"flat": True})
+    messages: MessageConfig = field(default_factory=MessageConfig, metadata={"flat": True})
+    map_file: str = field(default="", metadata={
+        "doc": "g2o file for the save service and for load_map_on_start."})
+    load_map_on_start: bool = field(default=False, metadata={
+        "doc": "Continue the graph saved in map_file."})
+    input_queue_depth: int = field(default=1000, metadata={
+        "doc": "Subscription queue depth of the odometry and GPS inputs (10 s of odometry at "
+               "100 Hz: what a stall of the node leaves waiting).", "range": (1, 100_000)})
+    loop_closure_queue_depth: int = field(default=10000, metadata={
+        "doc": "Subscription queue depth of the loop-closure input (a detector catching up "
+               "after a revisit sends thousands at once).", "range": (1, 1_000_000)})
+    idle_budget_ms: float = field(default=10.0, metadata={
+        "doc": "Solver time of an idle step, for edges that did not fit into the input "
+               "callbacks' budget and for merging exact solutions; 0 disables.",
+        "range": (0.0, 1000.0), "runtime": True})
+    idle_period: float = field(default=0.05, metadata={
+        "doc": "Seconds between idle steps; they run only while edges wait or the map is not "
+               "at a converged solution.", "range": (0.001, 10.0)})
+    input_late_ms: float = field(default=100.0, metadata={
+        "doc": "An odometry or GPS message handled more than this many ms after its stamp, "
+               "less the smallest stamp-to-handling delay seen (so the sender's clock need "
+               "not agree with the node's), counts as late in /diagnostics.",
+        "range": (0.1, 1e6)})
+    output_time_share: float = field(default=0.05, metadata={
+        "doc": "Largest share of the node's time for each periodic output whose cost grows "
+               "with the graph (graph topics, the map->odom correction, chi2 in "
+               "/diagnostics): its period stretches beyond the configured one as the graph "
+               "grows.", "range": (0.001, 1.0)})
