@@ -41,16 +41,6 @@ def planar_poses(R: Array, t: Array) -> Array:
     return np.column_stack([t[:, 0], t[:, 1], geo.matrix_to_yaw(R)])
 
 
-def planar_adjoint(pose: Array) -> Array:
-    """``Ad(T)`` of planar poses ``(..., 3)`` on right perturbations ``(δx, δy, δθ)``."""
-    c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
-    out = np.zeros((*pose.shape[:-1], 3, 3))
-    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2] = c, -s, pose[..., 1]
-    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2] = s, c, -pose[..., 0]
-    out[..., 2, 2] = 1.0
-    return out
-
-
 def relative_jacobians(pose_a: Array, pose_b: Array, meas: Array
                        ) -> tuple[Array, Array, Array]:
     """The error ``meas⁻¹ (a⁻¹ b)`` of planar relative edges and its Jacobians with respect
@@ -80,18 +70,6 @@ def dead_reckon(start: Array, inc: Array) -> Array:
     step = np.column_stack([c * inc[:, 0] - s * inc[:, 1], s * inc[:, 0] + c * inc[:, 1]])
     xy = start[:2] + np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)])
     return np.column_stack([xy, yaw])
-
-
-def _adjoints(rel: Array) -> Array:
-    """:func:`planar_adjoint` of the poses ``rel`` ``(k, 3)``, laid out ``(3, 3, k)``: the
-    chains' products below are over thousands of 3×3 blocks, and numpy's einsum over the
-    last axis is several times faster than its batched matmul over the first."""
-    c, s = np.cos(rel[:, 2]), np.sin(rel[:, 2])
-    out = np.zeros((3, 3, len(rel)))
-    out[0, 0], out[0, 1], out[0, 2] = c, -s, rel[:, 1]
-    out[1, 0], out[1, 1], out[1, 2] = s, c, -rel[:, 0]
-    out[2, 2] = 1.0
-    return out
 
 
 def _carried(A: Array, cov: Array, start: np.ndarray) -> tuple[Array, Array]:
@@ -145,7 +123,7 @@ def condense(lo: int, junctions: np.ndarray, inc: Array, cov: Array) -> Chains:
     first = np.concatenate([[lo], last[:-1]])
     start = first - lo
     owner = np.repeat(np.arange(len(last)), np.diff(np.append(start, last[-1] - lo)))
-    A = _adjoints(geo.planar_between(pose[last[owner] - lo], pose[1:]))
+    A = _adjoints_to_end(pose[1:, 0], pose[1:, 1], pose[1:, 2], last - lo - 1, owner)
     inc_cov = np.ascontiguousarray(cov.transpose(1, 2, 0))
     A_cov, carried = _carried(A, inc_cov, start)
     meas = geo.planar_between(pose[start], pose[last - lo])
@@ -226,7 +204,11 @@ def _walk(chains: Chains, pose: Array, inc: Array, moved: Array, owner: np.ndarr
 
 def _adjoints_to_end(x: Array, y: Array, yaw: Array, ends: np.ndarray, owner: np.ndarray
                      ) -> Array:
-    """``Ad(P_end⁻¹ P_i)`` of every node ``i`` and its chain's end, ``(3, 3, k)``."""
+    """``Ad(P_end⁻¹ P_i)`` of every node ``i`` (``x``, ``y``, ``yaw`` by increment) and its
+    chain's end (``ends``: each chain's last increment), on right perturbations
+    ``(δx, δy, δθ)``, laid out ``(3, 3, k)``: the chains' products are over thousands of
+    3×3 blocks, and numpy's einsum over the last axis is several times faster than its
+    batched matmul over the first."""
     end = ends[owner]
     c, s = np.cos(yaw[end]), np.sin(yaw[end])
     dx, dy = x - x[end], y - y[end]

@@ -76,3 +76,19 @@ def test_closures_a_merged_solution_left_out_are_spread_again() -> None:
         assert closure in h2o._respread  # noqa: SLF001
     finally:
         h2o.close()
+
+
+def test_a_planar_loop_is_condensed_first() -> None:
+    """Each of the three closures' first correction starts with the condensed solve (its
+    cost model sampled once each), and the loop solve finishes from its answer."""
+    g = loop_graph(3, True, 300, reverse=True, closures=((150, 40), (260, 120)))
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(background="off"))
+    try:
+        for node, edges in enumerate(arrivals(g)):
+            add_arrival(h2o, g, node, edges)
+            h2o.step(None)
+        assert h2o.condensed_loop.cost.samples == 3
+        assert h2o.spreads == {"solved": 3}
+        assert h2o.solver.chi2(g) / solve_exact(g).chi2_final < 1.01
+    finally:
+        h2o.close()
