@@ -40,7 +40,10 @@ venv: $(DEV_STAMP) $(KERNEL_STAMP)
 TF2_MSGS_SRC := tools/build_tf2_msgs.sh tools/rosidl_generate.py tools/tf2_msgs/package.xml \
   $(wildcard tools/tf2_msgs/msg/*.msg)
 
-$(DEV_STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg $(TF2_MSGS_SRC)
+# The editable install maps each top-level package when it is made: a new package (a new
+# top-level __init__.py) needs it made again, or imports from outside the checkout fail.
+$(DEV_STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg pyproject.toml \
+  $(wildcard */__init__.py) $(TF2_MSGS_SRC)
 	@if [ ! -x $(PY) ]; then \
 	  echo "creating $(VENV) with $(BOOTSTRAP_PYTHON)"; \
 	  $(BOOTSTRAP_PYTHON) -m venv $(VENV); \

@@ -306,7 +306,10 @@ class Run:
     def handled(self, kind: str) -> tuple[int, int, int]:
         """(accepted, rejected by design, rejected otherwise) for ``odometry``, ``gps`` or
         ``loop_closure``, from the diagnostics."""
-        accepted = int(self.diag.get(f"accepted {kind}", 0))
+        # A closure the χ² gate doubts is held in the graph at weight 0 for the robust
+        # solves to weigh: handled, not dropped.
+        accepted = int(self.diag.get(f"accepted {kind}", 0)) + int(
+            self.diag.get(f"accepted {kind}_held", 0))
         by_design = int(self.diag.get(NO_FIX_KEY, 0)) if kind == "gps" else 0
         prefix = {"odometry": ("rejected odometry",), "gps": ("rejected gps",),
                   "loop_closure": ("rejected loop",)}[kind]
@@ -690,7 +693,9 @@ Notes:
   file over the exact optimum of the same graph (`solve_exact(graph, iterations=100,
   init="input")`, from the node's own estimate; the smaller of the two is the optimum).
 - Counts: "published" by the publisher; "accepted" and the rejections are the node's
-  `accepted …` and `rejected …` diagnostics. NO_FIX fixes are rejected by design and
+  `accepted …` and `rejected …` diagnostics; a loop closure the χ² gate doubts is held in the
+  graph at weight 0 for the robust solves to weigh (`accepted loop_closure_held`) and counts as
+  accepted. NO_FIX fixes are rejected by design and
   counted apart from other rejections. Dropped = published − (accepted + rejected),
   per input kind, summed.
 """
