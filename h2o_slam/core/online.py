@@ -23,10 +23,12 @@ recursive least squares as the robot runs.
 
 from __future__ import annotations
 
+import functools
 import gc
 import math
 import time
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -797,19 +799,22 @@ class OnlineH2O:
             # The condensed solve first (where it applies), then the loop solve from its
             # answer where that fits: the condensed problem's optimum is the loop's to
             # first order only (MIT: 1.12 times the optimum's χ²).
-            first = self._solve_condensed(lo, deadline) if solver.planar else None
-            then = self._solve_loop(edge, lo, deadline)
+            # Both solve the same poses and edges: gathered once, when first needed.
+            problem = functools.cache(lambda: self.loop_solve.problem(solver, lo))
+            first = self._solve_condensed(lo, problem, deadline) if solver.planar else None
+            then = self._solve_loop(lo, problem, deadline)
             if first is not None or then is not None:
                 kept = any(run is not None and run[0] for run in (first, then))
                 self._count_spread(edge, kept, "solved")
                 return (then or first or (False, False))[1]
         return self._spread_chain(edge, lo, hi, deadline)
 
-    def _solve_condensed(self, lo: int, deadline: float) -> tuple[bool, bool] | None:
+    def _solve_condensed(self, lo: int, problem: Problem, deadline: float
+                         ) -> tuple[bool, bool] | None:
         """The loop solve of the poses after ``lo`` condensed to their junctions
         (:mod:`h2o_slam.core.condensed`) where that is much smaller than the loop solve and
         fits (``None`` if not): whether it was kept (χ² of the edges it moves fell) and
-        whether it converged."""
+        whether it converged. ``problem()``: :meth:`LoopSolve.problem` of ``lo``."""
         solver, n = self.solver, self.solver.num_nodes
         clock, safety = self._clock, self.online.safety
         chain = self._odometry_edge[lo + 1: n]
@@ -817,7 +822,7 @@ class OnlineH2O:
         if (n - lo < CONDENSE_MIN_POSES or len(chain) < n - lo - 1 or np.any(chain < 0)
                 or not self.condensed_loop.fits(len(chain), 0, deadline, clock, safety)):
             return None
-        free, edges = self.loop_solve.problem(solver, lo)
+        free, edges = problem()
         cross = np.setdiff1d(edges, chain)
         if (len(free) != n - lo - 1 or np.any(solver.kind[cross] != EdgeKind.RELATIVE)
                 or CONDENSE_SHARE * len(cross) > len(free)
@@ -825,7 +830,8 @@ class OnlineH2O:
                 or not self.condensed_loop.fits(len(chain), 3 * len(cross), deadline, clock,
                                                 safety)):
             return None
-        pose = planar_poses(*solver.world_poses())
+        R, t = solver.world_poses()
+        pose = planar_poses(R, t)
         reduced = Reduced(solver.a[cross], solver.b[cross], _planar_meas(solver, cross),
                           solver.weight[cross, None, None] * _planar_info(solver, cross),
                           np.empty(0, np.int64))
@@ -833,7 +839,6 @@ class OnlineH2O:
         solved, converged = self.condensed_loop.run(
             pose, lo, _planar_meas(solver, chain), cov, reduced, deadline, clock, safety,
             solver.config.exact_tolerance)
-        R, t = solver.world_poses()
         R_new, t_new = geo.yaw_to_matrix(solved[:, 2]), t.copy()
         t_new[:, :2] = solved[:, :2]
         graph, m = solver.graph(copy=False), solver.num_edges
@@ -843,16 +848,18 @@ class OnlineH2O:
             solver.tree.set_world_poses(R_new, t_new)
         return kept, converged
 
-    def _solve_loop(self, edge: int, lo: int, deadline: float) -> tuple[bool, bool] | None:
-        """The loop solve of ``edge`` if it fits (``None`` if not): whether it was kept and
-        whether it converged (else it goes on in the next step, from the poses it reached)."""
+    def _solve_loop(self, lo: int, problem: Problem, deadline: float
+                    ) -> tuple[bool, bool] | None:
+        """The loop solve of the poses after ``lo`` if it fits (``None`` if not): whether it
+        was kept and whether it converged (else it goes on in the next step, from the poses
+        it reached). ``problem()``: :meth:`LoopSolve.problem` of ``lo``."""
         solver, loop = self.solver, self.loop_solve
         clock, safety = self._clock, self.online.safety
         # The newer poses and their odometry bound the work from below: a long loop on a
         # large map is refused before its edges are gathered.
         if not loop.fits(2 * (solver.num_nodes - lo - 1), deadline, clock, safety):
             return None
-        free, edges = loop.problem(solver, lo)
+        free, edges = problem()
         if not loop.fits(len(free) + len(edges), deadline, clock, safety):
             return None
         return loop.run(solver, free, edges, deadline, clock, safety)
@@ -923,6 +930,8 @@ class OnlineH2O:
         return True
 
 
+#: ``() -> (free poses, edges)`` of a loop solve (:meth:`LoopSolve.problem`), gathered once.
+Problem = Callable[[], tuple[np.ndarray, np.ndarray]]
 #: Fewest poses after a closure's older end for which the loop solve is condensed.
 CONDENSE_MIN_POSES = 50
 #: The loop solve is condensed only where its poses are at least this many times the
