@@ -32,6 +32,7 @@ import numpy as np
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.exact import MAX_DAMPING, next_damping, settled
 from h2o_slam.core.geometry import Array
+from h2o_slam.core.loop_spread import dead_reckon
 from h2o_slam.core.spd import SPDFactor
 from h2o_slam.core.timing import CostModel
 
@@ -61,15 +62,6 @@ def relative_jacobians(pose_a: Array, pose_b: Array, meas: Array
     Ja = -Jb
     Ja[:, :2, 2] = turn
     return err, Ja, Jb
-
-
-def dead_reckon(start: Array, inc: Array) -> Array:
-    """Poses ``(k + 1, 3)`` from ``start`` along the increments ``inc`` ``(k, 3)``."""
-    yaw = start[2] + np.concatenate([[0.0], np.cumsum(inc[:, 2])])
-    c, s = np.cos(yaw[:-1]), np.sin(yaw[:-1])
-    step = np.column_stack([c * inc[:, 0] - s * inc[:, 1], s * inc[:, 0] + c * inc[:, 1]])
-    xy = start[:2] + np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)])
-    return np.column_stack([xy, yaw])
 
 
 def _carried(A: Array, cov: Array, start: np.ndarray) -> tuple[Array, Array]:

@@ -145,10 +145,12 @@ def _spread_planar(R: Array, t: Array, a: int, b: int, meas_R: Array, meas_t: Ar
     meas = np.array([meas_t[0], meas_t[1], np.arctan2(meas_R[1, 0], meas_R[0, 0])])
     cov_closure, cov = _covariances(info, chain_info, dof)
     moved = np.zeros((hi - lo, 3))
+    first = np.array([xy[0, 0], xy[0, 1], yaw[0]])
+    # Each increment perturbed on the right: d ⊕ moved.
     for _ in range(steps):
-        pose = _planar_chain(xy[0], yaw[0], d, moved)
+        pose = dead_reckon(first, geo.planar_compose(d, moved))
         moved = _planar_step(pose, a > b, meas, cov, cov_closure, moved)
-    pose = _planar_chain(xy[0], yaw[0], d, moved)
+    pose = dead_reckon(first, geo.planar_compose(d, moved))
     R_new, t_new = R.copy(), t.copy()
     R_new[lo + 1: hi + 1] = geo.yaw_to_matrix(pose[1:, 2])
     t_new[lo + 1: hi + 1, :2] = pose[1:, :2]
@@ -156,17 +158,13 @@ def _spread_planar(R: Array, t: Array, a: int, b: int, meas_R: Array, meas_t: Ar
     return R_new, t_new
 
 
-def _planar_chain(xy0: Array, yaw0: float, d: Array, moved: Array) -> Array:
-    """Poses ``(x, y, yaw)`` of the chain from its first, with each increment ``d_i``
-    perturbed on the right by ``moved_i = (δx, δy, δθ)``."""
-    c, s = np.cos(d[:, 2]), np.sin(d[:, 2])
-    inc = np.column_stack([d[:, 0] + c * moved[:, 0] - s * moved[:, 1],
-                           d[:, 1] + s * moved[:, 0] + c * moved[:, 1],
-                           d[:, 2] + moved[:, 2]])
-    yaw = yaw0 + np.concatenate([[0.0], np.cumsum(inc[:, 2])])
-    cb, sb = np.cos(yaw[:-1]), np.sin(yaw[:-1])
-    step = np.column_stack([cb * inc[:, 0] - sb * inc[:, 1], sb * inc[:, 0] + cb * inc[:, 1]])
-    xy = xy0[None, :] + np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)])
+def dead_reckon(start: Array, inc: Array) -> Array:
+    """Poses ``(k + 1, 3)`` as ``(x, y, yaw)`` from ``start`` along the planar increments
+    ``inc`` ``(k, 3)`` (yaw unwrapped)."""
+    yaw = start[2] + np.concatenate([[0.0], np.cumsum(inc[:, 2])])
+    c, s = np.cos(yaw[:-1]), np.sin(yaw[:-1])
+    step = np.column_stack([c * inc[:, 0] - s * inc[:, 1], s * inc[:, 0] + c * inc[:, 1]])
+    xy = start[:2] + np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)])
     return np.column_stack([xy, yaw])
 
 
