@@ -41,6 +41,7 @@ from numpy.typing import NDArray
 
 from h2o_slam.core.errors import InputError
 from h2o_slam.core.geometry import PLANAR_DOF
+from h2o_slam.core.parameters import parameter
 from hybrid_vo import patches as pt
 from hybrid_vo.camera import CameraIntrinsics, CameraMounting
 from hybrid_vo.errors import ConfigError, FrameError
@@ -109,33 +110,32 @@ class FrontendConfig:
         odometer: the hybrid odometer's own settings.
     """
 
-    camera_yaw: float = field(default=0.0, metadata={
-        "doc": "Left camera yaw on base_link, rad (positive: turned left).",
-        "range": (-math.pi, math.pi)})
-    camera_pitch: float = field(default=0.0, metadata={
-        "doc": "Left camera pitch, rad (REP-103: positive tilts down).", "range": (-1.5, 1.5)})
-    camera_roll: float = field(default=0.0, metadata={
-        "doc": "Left camera roll about its forward axis, rad (positive rolls it right).",
-        "range": (-1.5, 1.5)})
-    camera_height: float = field(default=1.0, metadata={
-        "doc": "Height of the left optical centre above the ground, m.", "range": (0.01, 100.0)})
-    camera_forward: float = field(default=0.0, metadata={
-        "doc": "Left optical centre ahead of base_link, m.", "range": (-100.0, 100.0)})
-    camera_left: float = field(default=0.0, metadata={
-        "doc": "Left optical centre left of base_link, m.", "range": (-100.0, 100.0)})
-    wheel_buffer: float = field(default=5.0, metadata={
-        "doc": "Seconds of wheel odometry kept to interpolate the wheel pose at frame stamps.",
-        "range": (0.1, 600.0)})
-    max_pending_frames: int = field(default=10, metadata={
-        "doc": "Stereo frames that may wait for wheel odometry to reach their stamp; beyond "
-               "that the oldest is dropped and counted (rejected.frame_wheel_timeout).",
-        "range": (1, 1000)})
-    wheel_sigma_per_m: float = field(default=0.02, metadata={
-        "doc": "Wheel translation noise, 1 sigma per metre travelled (along and across); the "
-               "published x/y covariance grows with it.", "range": (1e-6, 1.0)})
-    initial_sigma: float = field(default=1e-3, metadata={
-        "doc": "1 sigma of the first pose (m, rad); keeps the covariance invertible.",
-        "range": (1e-9, 10.0)})
+    camera_yaw: float = parameter(
+        0.0, "Left camera yaw on base_link, rad (positive: turned left).",
+        bounds=(-math.pi, math.pi))
+    camera_pitch: float = parameter(
+        0.0, "Left camera pitch, rad (REP-103: positive tilts down).", bounds=(-1.5, 1.5))
+    camera_roll: float = parameter(
+        0.0, "Left camera roll about its forward axis, rad (positive rolls it right).",
+        bounds=(-1.5, 1.5))
+    camera_height: float = parameter(
+        1.0, "Height of the left optical centre above the ground, m.", bounds=(0.01, 100.0))
+    camera_forward: float = parameter(
+        0.0, "Left optical centre ahead of base_link, m.", bounds=(-100.0, 100.0))
+    camera_left: float = parameter(
+        0.0, "Left optical centre left of base_link, m.", bounds=(-100.0, 100.0))
+    wheel_buffer: float = parameter(
+        5.0, "Seconds of wheel odometry kept to interpolate the wheel pose at frame stamps.",
+        bounds=(0.1, 600.0))
+    max_pending_frames: int = parameter(
+        10, "Stereo frames that may wait for wheel odometry to reach their stamp; beyond "
+        "that the oldest is dropped and counted (rejected.frame_wheel_timeout).", bounds=(1, 1000))
+    wheel_sigma_per_m: float = parameter(
+        0.02, "Wheel translation noise, 1 sigma per metre travelled (along and across); the "
+        "published x/y covariance grows with it.", bounds=(1e-6, 1.0))
+    initial_sigma: float = parameter(
+        1e-3, "1 sigma of the first pose (m, rad); keeps the covariance invertible.",
+        bounds=(1e-9, 10.0))
     odometer: OdometerConfig = field(default_factory=OdometerConfig)
 
     def __post_init__(self) -> None:

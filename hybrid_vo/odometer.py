@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from h2o_slam.core.parameters import parameter
 from hybrid_vo import patches as pt
 from hybrid_vo.camera import CameraIntrinsics, CameraMounting, SphericalMap
 from hybrid_vo.errors import ConfigError, FrameError
@@ -103,66 +104,62 @@ class OdometerConfig:
             frame (:func:`hybrid_vo.patches.track_patch`); False uses the forward parabola.
     """
 
-    work_width_px: int = field(default=160, metadata={
-        "doc": "Images are downsampled to this width (the height keeps the aspect ratio). "
-               "Thesis: 160 (160x120 for a 4:3 camera).", "range": (32, 4096)})
-    num_patches: int = field(default=6, metadata={
-        "doc": "Patches tracked per frame. Thesis: 6.", "range": (1, 64)})
-    patch_width_px: int = field(default=13, metadata={
-        "doc": "Patch width in spherical pixels, odd. Thesis: 13.", "range": (3, 63)})
-    patch_height_px: int = field(default=3, metadata={
-        "doc": "Patch height in spherical pixels, odd. Thesis: 3.", "range": (3, 63)})
-    band_half_height_rad: float = field(default=0.1, metadata={
-        "doc": "The horizon band covers this pitch above and below the horizon, rad.",
-        "range": (0.01, 0.8)})
-    theta_max_rad: float = field(default=0.0, metadata={
-        "doc": "Half-width of the patch sampling region about straight ahead, rad; 0 derives "
-               "it from the mounting as the thesis does (capped at 0.14).",
-        "range": (0.0, 1.5)})
+    work_width_px: int = parameter(
+        160, "Images are downsampled to this width (the height keeps the aspect ratio). "
+        "Thesis: 160 (160x120 for a 4:3 camera).", bounds=(32, 4096))
+    num_patches: int = parameter(6, "Patches tracked per frame. Thesis: 6.", bounds=(1, 64))
+    patch_width_px: int = parameter(
+        13, "Patch width in spherical pixels, odd. Thesis: 13.", bounds=(3, 63))
+    patch_height_px: int = parameter(
+        3, "Patch height in spherical pixels, odd. Thesis: 3.", bounds=(3, 63))
+    band_half_height_rad: float = parameter(
+        0.1, "The horizon band covers this pitch above and below the horizon, rad.",
+        bounds=(0.01, 0.8))
+    theta_max_rad: float = parameter(
+        0.0, "Half-width of the patch sampling region about straight ahead, rad; 0 derives "
+        "it from the mounting as the thesis does (capped at 0.14).", bounds=(0.0, 1.5))
     theta_max_cap_rad: float = 0.14
-    max_speed_m_s: float = field(default=1.3, metadata={
-        "doc": "Largest robot speed, m/s; with frame_rate_hz it gives the travel between "
-               "frames of the range test (2.3), which drops features nearer than r_min.",
-        "range": (0.01, 50.0)})
-    frame_rate_hz: float = field(default=10.0, metadata={
-        "doc": "Camera frame rate, Hz.", "range": (0.1, 200.0)})
+    max_speed_m_s: float = parameter(
+        1.3, "Largest robot speed, m/s; with frame_rate_hz it gives the travel between "
+        "frames of the range test (2.3), which drops features nearer than r_min.",
+        bounds=(0.01, 50.0))
+    frame_rate_hz: float = parameter(10.0, "Camera frame rate, Hz.", bounds=(0.1, 200.0))
     candidate_factor: int = 3
-    min_patches: int = field(default=3, metadata={
-        "doc": "Fewer usable patches than this and the frame uses wheel odometry (at most "
-               "num_patches).", "range": (1, 64)})
-    min_ncc: float = field(default=0.75, metadata={
-        "doc": "A patch match below this normalized cross-correlation is discarded.",
-        "range": (-0.99, 0.99)})
+    min_patches: int = parameter(
+        3, "Fewer usable patches than this and the frame uses wheel odometry (at most "
+        "num_patches).", bounds=(1, 64))
+    min_ncc: float = parameter(
+        0.75, "A patch match below this normalized cross-correlation is discarded.",
+        bounds=(-0.99, 0.99))
     harris_min_response: float = 1e-5
     stereo_max_disparity_px: int = 40
     stereo_min_ncc: float = 0.6
     stereo_half_width_px: int = 4
     stereo_half_height_px: int = 2
-    fallback_yaw_sigma_rad: float = field(default=0.02, metadata={
-        "doc": "Yaw sigma given to a frame that uses wheel odometry, rad.",
-        "range": (1e-6, 1.0)})
+    fallback_yaw_sigma_rad: float = parameter(
+        0.02, "Yaw sigma given to a frame that uses wheel odometry, rad.", bounds=(1e-6, 1.0))
     yaw_sigma_floor_rad: float = 1e-4
-    sigma_merge: Literal["thesis", "inverse_variance"] = field(default="thesis", metadata={
-        "doc": "How the patches' yaw sigmas combine: thesis (as printed) or inverse_variance."})
-    parallax_correction: bool = field(default=True, metadata={
-        "doc": "Beyond the thesis: remove from each patch the parallax predicted from the "
-               "wheel travel and its stereo range."})
-    balance_sides: bool = field(default=True, metadata={
-        "doc": "Beyond the thesis: take patches from both sides of the direction of travel, "
-               "equally weighted."})
-    parallax_min_disparity_px: float = field(default=0.0, metadata={
-        "doc": "Patches with less stereo disparity are taken as infinitely far, px.",
-        "range": (0.0, 100.0)})
-    symmetric_subpixel: bool = field(default=True, metadata={
-        "doc": "Beyond the thesis: average the forward match with a match back from the "
-               "current frame."})
-    stereo_at_input_resolution: bool = field(default=True, metadata={
-        "doc": "Beyond the thesis: range patches on the stereo pair as it arrives, not the "
-               "downsampled one."})
-    match_blur_px: float = field(default=1.0, metadata={
-        "doc": "Beyond the thesis: Gaussian blur (sigma, spherical px) before corners and "
-               "NCC; 0 disables (all four options off and this 0 is the thesis algorithm).",
-        "range": (0.0, 10.0)})
+    sigma_merge: Literal["thesis", "inverse_variance"] = parameter(
+        "thesis", "How the patches' yaw sigmas combine: thesis (as printed) or inverse_variance.")
+    parallax_correction: bool = parameter(
+        True, "Beyond the thesis: remove from each patch the parallax predicted from the "
+        "wheel travel and its stereo range.")
+    balance_sides: bool = parameter(
+        True, "Beyond the thesis: take patches from both sides of the direction of travel, "
+        "equally weighted.")
+    parallax_min_disparity_px: float = parameter(
+        0.0, "Patches with less stereo disparity are taken as infinitely far, px.",
+        bounds=(0.0, 100.0))
+    symmetric_subpixel: bool = parameter(
+        True, "Beyond the thesis: average the forward match with a match back from the "
+        "current frame.")
+    stereo_at_input_resolution: bool = parameter(
+        True, "Beyond the thesis: range patches on the stereo pair as it arrives, not the "
+        "downsampled one.")
+    match_blur_px: float = parameter(
+        1.0, "Beyond the thesis: Gaussian blur (sigma, spherical px) before corners and "
+        "NCC; 0 disables (all four options off and this 0 is the thesis algorithm).",
+        bounds=(0.0, 10.0))
 
     def __post_init__(self) -> None:
         def positive(name: str) -> None:

@@ -19,6 +19,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
+from h2o_slam.core.parameters import parameter
 from hybrid_vo.errors import ConfigError
 
 T = TypeVar("T")
@@ -39,16 +40,14 @@ class SyncConfig:
         sync_queue_size: unpaired messages kept per side.
     """
 
-    approx_sync: bool = field(default=True, metadata={
-        "doc": "Pair left and right images by nearest stamp (true) or by equal stamps only "
-               "(false)."})
-    approx_sync_max_interval: float = field(default=0.02, metadata={
-        "doc": "Largest left/right stamp difference of a pair, s; approx_sync only. Keep it "
-               "below half the frame period (0.05 s at 10 Hz).",
-        "range": (0.0, 1.0)})
-    sync_queue_size: int = field(default=10, metadata={
-        "doc": "Unpaired images kept per side before the oldest is dropped.",
-        "range": (1, 100)})
+    approx_sync: bool = parameter(
+        True, "Pair left and right images by nearest stamp (true) or by equal stamps only "
+        "(false).")
+    approx_sync_max_interval: float = parameter(
+        0.02, "Largest left/right stamp difference of a pair, s; approx_sync only. Keep it "
+        "below half the frame period (0.05 s at 10 Hz).", bounds=(0.0, 1.0))
+    sync_queue_size: int = parameter(
+        10, "Unpaired images kept per side before the oldest is dropped.", bounds=(1, 100))
 
     def __post_init__(self) -> None:
         interval = self.approx_sync_max_interval

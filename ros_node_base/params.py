@@ -8,7 +8,8 @@ the parameter tables of ``doc/nodes.md`` are written from the same tree
 (:mod:`ros_node_base.documents`).
 
 What a field says, in its ``metadata`` (plain keys, so that the cores holding the trees
-need import nothing of this package):
+need import nothing of this package; :func:`h2o_slam.core.parameters.parameter` writes the
+first three):
 
 * ``doc``: the description; a leaf field without one is internal and not a parameter.
 * ``range``: ``(low, high)``, inclusive; the node refuses a value outside it.

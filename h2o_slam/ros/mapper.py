@@ -51,6 +51,7 @@ from h2o_slam.core.geometry import planar_between, planar_compose
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, edge_chi2
 from h2o_slam.core.modes import add_arrival, arrivals
 from h2o_slam.core.online import OnlineConfig, OnlineH2O, StepReport
+from h2o_slam.core.parameters import parameter
 from h2o_slam.core.robust import EdgeState, RobustConfig, edge_states, odometry_edges
 from h2o_slam.core.solver import SolverConfig
 from h2o_slam.io.map_store import SavedMap, has_map, load_map, save_map
@@ -105,45 +106,41 @@ class MapperConfig:
             (the node's choice): a worker process when budgeted, inline when not.
     """
 
-    budget_ms: float = field(default=5.0, metadata={
-        "doc": "Solver time per callback in ms; 0 solves every new edge in full and the graph "
-               "exactly, inline, on a fixed schedule (replays: deterministic); > 0 at start-up "
-               "starts the exact solver's worker process.",
-        "range": (0.0, 1000.0), "runtime": True})
-    d_max: int = field(default=0, metadata={
-        "doc": "Most nodes solved per edge; 0 lets the budget decide.",
-        "range": (0, 1_000_000), "runtime": True})
-    keyframe_distance: float = field(default=0.5, metadata={
-        "doc": "New keyframe after this travel in m; 0 disables.",
-        "range": (0.0, 100.0), "runtime": True})
-    keyframe_angle: float = field(default=0.2, metadata={
-        "doc": "New keyframe after this turn in rad; 0 disables.",
-        "range": (0.0, 6.3), "runtime": True})
-    keyframe_period: float = field(default=0.0, metadata={
-        "doc": "New keyframe after this many s; 0 disables.",
-        "range": (0.0, 3600.0), "runtime": True})
-    odom_sigma_per_m: float = field(default=0.05, metadata={
-        "doc": "Odometry translation sigma per metre travelled.", "range": (0.0, 10.0)})
-    odom_yaw_sigma_per_rad: float = field(default=0.05, metadata={
-        "doc": "Odometry heading sigma per radian turned.", "range": (0.0, 10.0)})
-    odom_yaw_sigma_per_m: float = field(default=0.01, metadata={
-        "doc": "Odometry heading sigma (rad) per metre travelled.", "range": (0.0, 10.0)})
+    budget_ms: float = parameter(
+        5.0, "Solver time per callback in ms; 0 solves every new edge in full and the graph "
+        "exactly, inline, on a fixed schedule (replays: deterministic); > 0 at start-up "
+        "starts the exact solver's worker process.", bounds=(0.0, 1000.0), runtime=True)
+    d_max: int = parameter(
+        0, "Most nodes solved per edge; 0 lets the budget decide.",
+        bounds=(0, 1_000_000), runtime=True)
+    keyframe_distance: float = parameter(
+        0.5, "New keyframe after this travel in m; 0 disables.", bounds=(0.0, 100.0), runtime=True)
+    keyframe_angle: float = parameter(
+        0.2, "New keyframe after this turn in rad; 0 disables.", bounds=(0.0, 6.3), runtime=True)
+    keyframe_period: float = parameter(
+        0.0, "New keyframe after this many s; 0 disables.", bounds=(0.0, 3600.0), runtime=True)
+    odom_sigma_per_m: float = parameter(
+        0.05, "Odometry translation sigma per metre travelled.", bounds=(0.0, 10.0))
+    odom_yaw_sigma_per_rad: float = parameter(
+        0.05, "Odometry heading sigma per radian turned.", bounds=(0.0, 10.0))
+    odom_yaw_sigma_per_m: float = parameter(
+        0.01, "Odometry heading sigma (rad) per metre travelled.", bounds=(0.0, 10.0))
     odom_min_sigma_m: float = 0.01
     odom_min_sigma_rad: float = 0.002
-    loop_gate_chi2: float = field(default=CHI2_3DOF_999, metadata={
-        "doc": "Largest accepted loop-closure chi2 (3 dof; 16.27 is the 99.9 % quantile).",
-        "range": (0.1, 1e12), "runtime": True})
-    robust: bool = field(default=True, metadata={
-        "doc": "Weigh loop closures and GPS fixes as possible outliers (GNC-TLS in the exact "
-               "solves, every decision revised by each solve); a closure or fix the gate "
-               "doubts is held at weight 0 instead of refused. false: least squares, the gate "
-               "refuses."})
-    loop_stamp_tolerance: float = field(default=0.5, metadata={
-        "doc": "Seconds a loop-closure stamp may lie from a keyframe.", "range": (0.0, 60.0)})
-    gps_time_tolerance: float = field(default=0.2, metadata={
-        "doc": "Seconds a fix may lie from the keyframe it lands on.", "range": (0.0, 10.0)})
-    gps_lever_arm: tuple[float, float] = field(default=(0.0, 0.0), metadata={
-        "doc": "Antenna position [x, y] in base_frame, m."})
+    loop_gate_chi2: float = parameter(
+        CHI2_3DOF_999, "Largest accepted loop-closure chi2 (3 dof; 16.27 is the 99.9 % quantile).",
+        bounds=(0.1, 1e12), runtime=True)
+    robust: bool = parameter(
+        True, "Weigh loop closures and GPS fixes as possible outliers (GNC-TLS in the exact "
+        "solves, every decision revised by each solve); a closure or fix the gate "
+        "doubts is held at weight 0 instead of refused. false: least squares, the gate "
+        "refuses.")
+    loop_stamp_tolerance: float = parameter(
+        0.5, "Seconds a loop-closure stamp may lie from a keyframe.", bounds=(0.0, 60.0))
+    gps_time_tolerance: float = parameter(
+        0.2, "Seconds a fix may lie from the keyframe it lands on.", bounds=(0.0, 10.0))
+    gps_lever_arm: tuple[float, float] = parameter(
+        (0.0, 0.0), "Antenna position [x, y] in base_frame, m.")
     background: Literal["process", "inline", "off"] | None = None
 
     def __post_init__(self) -> None:
