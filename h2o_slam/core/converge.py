@@ -133,7 +133,7 @@ class ExactProblem:
 
     def __init__(self, planar: bool, config: SolverConfig | None = None,
                  robust: RobustConfig | None = None) -> None:
-        self.solver = H2OSolver(planar, config)
+        self.solver = H2OSolver(planar=planar, config=config)
         self.robust = robust
         # The last solution: the next solve starts from it (Gauss–Newton carried on, as
         # iSAM2 carries its linearization point), not from the live map, which the

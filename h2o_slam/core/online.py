@@ -200,7 +200,7 @@ class OnlineH2O:
         # Budgeted callbacks must not pay for loading kernels: all of them now, unless a
         # node is loading them beside its executor (it holds its inputs until they are).
         ensure_warm_up()
-        self.solver = H2OSolver(planar, config)
+        self.solver = H2OSolver(planar=planar, config=config)
         self.online = online or OnlineConfig()
         self._blas = (None if self.online.blas_threads is None
                       else BlasLimit(self.online.blas_threads))

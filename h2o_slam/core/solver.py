@@ -100,7 +100,7 @@ class H2OSolver:
     Node ``i`` of the solver is node ``i`` of the graph it was built from.
     """
 
-    def __init__(self, planar: bool, config: SolverConfig | None = None) -> None:
+    def __init__(self, *, planar: bool, config: SolverConfig | None = None) -> None:
         self.config = config or SolverConfig()
         self.planar = planar
         self.dof = geo.PLANAR_DOF if planar else np.arange(6)
@@ -312,7 +312,7 @@ class H2OSolver:
         building it is a linearization of every edge along its tree path (0.4 s of
         city10000's 1 s).
         """
-        solver = cls(graph.planar, config)
+        solver = cls(planar=graph.planar, config=config)
         solver.tree = PoseTree.from_parents(parents, graph.R, graph.t)
         solver.B = np.zeros((graph.num_nodes, solver.p, solver.p))
         solver.tree_edge, solver.tree_edge_forward = tree_edges(graph, parents)

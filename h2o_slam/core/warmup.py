@@ -87,7 +87,7 @@ def _run_every_path() -> None:
     endpoint_jacobians(np.zeros(1, dtype=np.int64), eye, zero, eye, zero, eye, zero)
     chain_jacobians(eye, eye, zero, zero[0])
     for planar in (True, False):
-        solver = H2OSolver(planar)
+        solver = H2OSolver(planar=planar)
         solver.add_pose(np.eye(3), np.zeros(3))
         step = np.array([1.0, 0.0, 0.0])
         yaw = geo.yaw_to_matrix(np.array(0.1))

@@ -161,7 +161,7 @@ def test_single_edge_update_with_singular_regularizer_blocks():
     # Online, a new leaf's only edge is the one relaxed: its B_c block is exactly zero, and a
     # position edge alone leaves a rank-deficient block. The update must match lstsq.
     graph = random_graph(8, False, n=6, loops=0, gps=3)
-    solver = H2OSolver(False, UNCAPPED)
+    solver = H2OSolver(planar=False, config=UNCAPPED)
     solver.add_pose(graph.R[0], graph.t[0])
     for e in range(graph.num_edges):
         solver.add_edge(int(graph.kind[e]), int(graph.a[e]), int(graph.b[e]),
@@ -332,7 +332,7 @@ def test_edges_added_at_once_equal_edges_added_one_by_one():
     graph = random_graph(41, False, n=10, loops=5, gps=3, orientation=2)
     parents = np.concatenate([[EARTH], np.arange(graph.num_nodes - 1)])
     bulk = H2OSolver.from_graph(graph, parents)
-    single = H2OSolver(graph.planar)
+    single = H2OSolver(planar=graph.planar)
     for e in range(graph.num_edges):
         single._append_edge(int(graph.kind[e]), int(graph.a[e]), int(graph.b[e]),
                             graph.meas_R[e], graph.meas_t[e], graph.info[e])
