@@ -1,18 +1,25 @@
 """Seeded synthetic pose graphs with known ground truth, for tests, benchmarks and the demo.
 
-Two generators, deterministic from their seed (``numpy.random.Generator``):
+Three generators, deterministic from their seed (``numpy.random.Generator``):
 
 * :func:`manhattan` — a planar random walk on a 1 m grid with ±90° turns, in the manner of
   Olson's Manhattan world (M3500).
 * :func:`grid3d` — a random walk on a 3-D lattice with a random orientation at every pose,
   in the manner of smallGrid3D.
+* :func:`sphere` — rings of poses on a sphere, in the manner of g2o's ``create_sphere`` and
+  the sphere graphs of Carlone, Tron, Daniilidis & Dellaert, "Initialization techniques for
+  3D SLAM: a survey on rotation estimation and its use in pose graph optimization" (ICRA
+  2015): odometry along the rings, loop closures to the neighbouring ring.
 
-Both add odometry edges ``(i, i+1)``, loop closures to earlier poses nearby, and optionally
-GPS position edges. Every measurement is made from the truth with noise drawn from the
-covariance its information matrix states, such that the edge's error at the truth *is*
-that noise sample: χ² at the truth follows a χ² distribution with as many degrees of
-freedom as the edges constrain (3 per planar relative edge, 6 per 3-D one, 2 or 3 per
-GPS edge). The graph's estimate is the noisy odometry chain.
+All add odometry edges ``(i, i+1)`` and loop closures to earlier poses nearby; the first two
+optionally GPS position edges. For large noise (rotation σ of 0.05–0.3 rad, where a start
+from dead reckoning is far from the optimum) :func:`matched_translation_sigma` gives the
+translation σ that matches a rotation σ. Every measurement is made from the truth with
+noise drawn from the covariance its information matrix states, such that the edge's error
+at the truth *is* that noise sample: χ² at the truth follows a χ² distribution with as many
+degrees of freedom as the edges constrain (3 per planar relative edge, 6 per 3-D one, 2 or
+3 per GPS edge). The graph's estimate is the noisy odometry chain (dead reckoning, as a
+file's vertices would be).
 
 Command line (used by the demo)::
 
@@ -48,6 +55,9 @@ _SPATIAL_CORR[2, 3] = _SPATIAL_CORR[3, 2] = -0.1  # z - rot x
 
 _STEPS_2D = np.array([[1, 0], [0, 1], [-1, 0], [0, -1]])  # heading k·90°
 _STEPS_3D = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+
+#: The rotation noise levels (σ per axis, rad) of the large-noise 3-D benchmarks.
+LARGE_NOISE_SIGMAS_RAD = (0.05, 0.1, 0.2, 0.3)
 
 
 @dataclass(frozen=True)
@@ -179,6 +189,85 @@ def grid3d(
     cov = sigma[:, None] * _SPATIAL_CORR * sigma[None, :]
     pairs = _edge_plan(rng, truth_t, loop_probability, loop_radius_m, gps_every)
     return _assemble(rng, False, truth_R, truth_t, pairs, cov, gps_sigma_m)
+
+
+def sphere(
+    rings: int,
+    per_ring: int,
+    seed: int,
+    *,
+    radius_m: float = 100.0,
+    sigma_rot_rad: float = 0.05,
+    sigma_xyz_m: float | None = None,
+) -> SyntheticGraph:
+    """Sphere graph: ``rings × per_ring`` poses on a sphere, as g2o's ``create_sphere`` lays
+    them out (the standard sphere benchmarks; 44 × 50 is the size of the 2,200-pose
+    large-noise sphere).
+
+    Pose ``k = f·per_ring + i`` (ring ``f``, place ``i``) is ``Rz(−π + 2πi / per_ring) ·
+    Ry(−π/2 + (k + 1)·π / (rings·per_ring))`` with its x axis pointing out of the sphere
+    (position ``R · (radius_m, 0, 0)``), so the poses spiral from the south pole to the north
+    pole; the truth is expressed in pose 0's frame (pose 0 is the identity). Odometry joins
+    ``k`` and ``k + 1`` (along a ring, and from each ring's last pose to the next ring's
+    first); loop closures join ``k`` to ``k + per_ring − 1``, ``k + per_ring`` and
+    ``k + per_ring + 1`` (the neighbouring ring), as in ``create_sphere``.
+
+    Noise: independent, ``sigma_rot_rad`` per rotation axis and ``sigma_xyz_m`` per
+    translation axis (default :func:`matched_translation_sigma` of the mean odometry step);
+    information = the inverse of that diagonal covariance.
+
+    Args:
+        rings: number of rings (≥ 2).
+        per_ring: poses per ring (≥ 3).
+        seed: seed of the random generator.
+        radius_m: radius of the sphere in m.
+        sigma_rot_rad: standard deviation of the rotation noise per axis in rad.
+        sigma_xyz_m: standard deviation of the translation noise per axis in m (None: matched
+            to ``sigma_rot_rad``).
+
+    Raises:
+        InputError: a size below its minimum, or a radius or σ that is not positive.
+    """
+    if rings < 2 or per_ring < 3:
+        raise InputError(f"a sphere needs at least 2 rings of 3 poses, got {rings} × {per_ring}")
+    if not (np.isfinite(radius_m) and radius_m > 0.0):
+        raise InputError(f"radius_m must be positive, got {radius_m}")
+    n = rings * per_ring
+    k = np.arange(n)
+    yaw = -np.pi + 2.0 * np.pi * (k % per_ring) / per_ring
+    pitch = -0.5 * np.pi + (k + 1) * np.pi / n
+    zero = np.zeros(n)
+    world_R = geo.so3_exp(np.column_stack([zero, zero, yaw])) @ geo.so3_exp(
+        np.column_stack([zero, pitch, zero]))
+    world_t = world_R[:, :, 0] * radius_m
+    # In pose 0's frame, as the odometry chain starts there.
+    truth_R, truth_t = geo.between(world_R[:1], world_t[:1], world_R, world_t)
+    truth_R = geo.orthonormalize(truth_R)
+    truth_t[0] = 0.0
+    truth_R[0] = np.eye(3)
+    if sigma_xyz_m is None:
+        step_m = float(np.mean(np.linalg.norm(np.diff(truth_t, axis=0), axis=1)))
+        sigma_xyz_m = matched_translation_sigma(sigma_rot_rad, step_m)
+    _check_args(n, 0.0, 0.0, 0, (sigma_xyz_m, sigma_rot_rad))
+    rng = np.random.default_rng(seed)
+    plan: list[tuple[int, int]] = []
+    for b in range(1, n):
+        plan.append((b - 1, b))
+        for gap in (per_ring + 1, per_ring, per_ring - 1):
+            a = b - gap
+            # create_sphere closes from every pose of a ring but the last ring's.
+            if 0 <= a < (rings - 1) * per_ring:
+                plan.append((a, b))
+    cov = np.diag(np.array([sigma_xyz_m] * 3 + [sigma_rot_rad] * 3) ** 2)
+    return _assemble(rng, False, truth_R, truth_t, plan, cov, 1.0)
+
+
+def matched_translation_sigma(sigma_rot_rad: float, step_m: float) -> float:
+    """The translation σ (m) that matches a rotation σ (rad) on steps of ``step_m`` m: a
+    heading error of ``sigma_rot_rad`` displaces the end of a step by about
+    ``sigma_rot_rad · step_m``, so translation and rotation noise weigh alike in χ² (on
+    the 1 m steps of :func:`grid3d`, σ_t in m equals σ_R in rad)."""
+    return sigma_rot_rad * step_m
 
 
 def _check_args(

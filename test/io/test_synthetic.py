@@ -11,7 +11,7 @@ from h2o_slam.core import geometry as geo
 from h2o_slam.core.errors import InputError
 from h2o_slam.core.graph import EdgeKind, chi2, odometry_chain
 from h2o_slam.io import synthetic
-from h2o_slam.io.g2o import read_g2o
+from h2o_slam.io.g2o import read_g2o, write_g2o
 from h2o_slam.io.synthetic import SyntheticGraph, grid3d, manhattan
 
 GENERATORS = [manhattan, grid3d]
@@ -163,3 +163,132 @@ def test_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
 def test_truth_path() -> None:
     assert synthetic.truth_path(Path("a/demo.g2o")) == Path("a/demo.truth.g2o")
     assert synthetic.truth_path(Path("graph")) == Path("graph.truth.g2o")
+
+
+# --- the large-noise sphere and the matched translation σ ---------------------------------------
+
+
+def _residuals_at_truth(syn: SyntheticGraph) -> tuple[np.ndarray, np.ndarray]:
+    """Each relative edge's error at the truth, ``(m, 3)`` translation (m) and ``(m, 3)``
+    rotation (rad): the noise sample the generator drew."""
+    g = syn.graph
+    R, t = geo.between(syn.truth_R[g.a], syn.truth_t[g.a], syn.truth_R[g.b], syn.truth_t[g.b])
+    dR, dt = geo.between(g.meas_R, g.meas_t, R, t)  # K⁻¹ T
+    return dt, geo.so3_log(dR)
+
+
+def test_sphere_is_deterministic_from_seed() -> None:
+    a, b, c = synthetic.sphere(6, 10, 4), synthetic.sphere(6, 10, 4), synthetic.sphere(6, 10, 5)
+    for name in ("kind", "a", "b", "meas_R", "meas_t", "info", "R", "t"):
+        np.testing.assert_array_equal(getattr(a.graph, name), getattr(b.graph, name))
+    np.testing.assert_array_equal(a.truth_R, b.truth_R)
+    np.testing.assert_array_equal(a.truth_t, c.truth_t)  # same layout, other noise
+    assert not np.array_equal(a.graph.meas_t, c.graph.meas_t)
+
+
+def test_sphere_layout_like_create_sphere() -> None:
+    rings, per_ring, radius = 8, 12, 10.0
+    syn = synthetic.sphere(rings, per_ring, 0, radius_m=radius)
+    g = syn.graph
+    n = rings * per_ring
+    assert not g.planar and g.num_nodes == n
+    # Odometry along the rings; three closures to the previous ring from every pose but the
+    # last ring's and the very last of the others: 3 (rings − 1) per_ring − 1.
+    assert g.num_edges == (n - 1) + 3 * (rings - 1) * per_ring - 1
+    assert syn.num_loop_closures == 3 * (rings - 1) * per_ring - 1
+    np.testing.assert_array_equal(np.unique(g.b - g.a), [1, per_ring - 1, per_ring, per_ring + 1])
+    assert np.all(g.kind == EdgeKind.RELATIVE)
+    # Every pose on one sphere: the centre is pose 0's (radius, 0, 0) back along its x axis.
+    centre = -radius * syn.truth_R[0][:, 0]
+    np.testing.assert_allclose(np.linalg.norm(syn.truth_t - centre, axis=1), radius, rtol=1e-12)
+    # Each pose's x axis points out of the sphere.
+    out = (syn.truth_t - centre) / radius
+    np.testing.assert_allclose(np.einsum("nij,ni->nj", syn.truth_R, out)[:, 0], 1.0, atol=1e-12)
+    np.testing.assert_allclose(syn.truth_R[0], np.eye(3), atol=1e-15)
+    np.testing.assert_array_equal(syn.truth_t[0], 0.0)
+    # Rotations are rotations; the start is the dead reckoning of the noisy odometry.
+    np.testing.assert_allclose(np.linalg.det(syn.truth_R), 1.0, atol=1e-12)
+    R, t = odometry_chain(g)
+    np.testing.assert_allclose(g.R, R, atol=1e-13)
+    np.testing.assert_array_equal(g.t, t)
+
+
+def test_the_standard_large_noise_sphere_size() -> None:
+    g = synthetic.sphere(44, 50, 0).graph
+    assert (g.num_nodes, g.num_edges) == (2200, 8648)
+
+
+@pytest.mark.parametrize("sigma", synthetic.LARGE_NOISE_SIGMAS_RAD)
+def test_sphere_noise_has_the_stated_sigma(sigma: float) -> None:
+    syn = synthetic.sphere(30, 40, 1, sigma_rot_rad=sigma)
+    g = syn.graph
+    step = np.mean(np.linalg.norm(np.diff(syn.truth_t, axis=0), axis=1))
+    sigma_t = synthetic.matched_translation_sigma(sigma, float(step))
+    dt, dtheta = _residuals_at_truth(syn)
+    # 3 × 3500 samples per block: the sample σ is within 2 % of the true one (≈ 8 σ of its
+    # own spread), zero-mean, and the axes are independent as the information says.
+    np.testing.assert_allclose(np.std(dtheta, axis=0), sigma, rtol=0.03)
+    np.testing.assert_allclose(np.std(dt, axis=0), sigma_t, rtol=0.03)
+    assert np.all(np.abs(np.mean(dtheta, axis=0)) < 0.1 * sigma)
+    corr = np.corrcoef(np.column_stack([dt, dtheta]).T)
+    assert np.max(np.abs(corr - np.eye(6))) < 0.08
+    # Information = the inverse of that covariance, on every edge.
+    expect = np.diag(1.0 / np.array([sigma_t] * 3 + [sigma] * 3) ** 2)
+    np.testing.assert_allclose(g.info, np.broadcast_to(expect, g.info.shape), rtol=1e-12)
+    # χ² at the truth is χ²(6 m) distributed: the information matches the noise.
+    dof = 6 * g.num_edges
+    assert abs(chi2(g, syn.truth_R, syn.truth_t) - dof) < 5 * np.sqrt(2 * dof)
+
+
+@pytest.mark.parametrize("sigma", [0.05, 0.3])
+def test_grid3d_large_noise_has_the_stated_sigma(sigma: float) -> None:
+    syn = grid3d(1500, 2, sigma_rot_rad=sigma,
+                 sigma_xyz_m=synthetic.matched_translation_sigma(sigma, 1.0))
+    dt, dtheta = _residuals_at_truth(syn)
+    np.testing.assert_allclose(np.std(dtheta, axis=0), sigma, rtol=0.05)
+    np.testing.assert_allclose(np.std(dt, axis=0), sigma, rtol=0.05)
+
+
+def test_matched_translation_sigma() -> None:
+    assert synthetic.matched_translation_sigma(0.2, 1.0) == pytest.approx(0.2)
+    assert synthetic.matched_translation_sigma(0.1, 8.0) == pytest.approx(0.8)
+    syn = synthetic.sphere(5, 8, 0, sigma_rot_rad=0.1, sigma_xyz_m=0.5)
+    np.testing.assert_allclose(syn.graph.info[0].diagonal(), [4, 4, 4, 100, 100, 100])
+
+
+def test_large_noise_start_is_far_from_the_truth() -> None:
+    """At σ_R = 0.3 rad dead reckoning is far off: what the chordal start is for."""
+    syn = synthetic.sphere(10, 20, 0, sigma_rot_rad=0.3)
+    assert chi2(syn.graph) > 20 * chi2(syn.graph, syn.truth_R, syn.truth_t)
+
+
+def test_sphere_written_g2o_reads_back(tmp_path: Path) -> None:
+    syn = synthetic.sphere(6, 10, 3, sigma_rot_rad=0.2)
+    path = tmp_path / "sphere.g2o"
+    write_g2o(path, syn.graph)
+    back = read_g2o(path)
+    g = syn.graph
+    for name in ("kind", "a", "b"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(g, name))
+    np.testing.assert_allclose(back.meas_t, g.meas_t, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(back.meas_R, g.meas_R, atol=1e-12)
+    np.testing.assert_allclose(back.t, g.t, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(back.R, g.R, atol=1e-12)
+    np.testing.assert_allclose(back.info, g.info, rtol=1e-9)
+    assert chi2(back) == pytest.approx(chi2(g), rel=1e-8)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        (dict(rings=1), "at least 2 rings of 3 poses"),
+        (dict(per_ring=2), "at least 2 rings of 3 poses"),
+        (dict(radius_m=0.0), "radius_m must be positive"),
+        (dict(sigma_rot_rad=-0.1), "standard deviations must be positive"),
+        (dict(sigma_xyz_m=float("nan")), "standard deviations must be positive"),
+    ],
+)
+def test_sphere_bad_arguments(kwargs: dict, match: str) -> None:
+    args = dict(rings=4, per_ring=5, seed=0) | kwargs
+    with pytest.raises(InputError, match=match):
+        synthetic.sphere(**args)
