@@ -66,6 +66,10 @@ class PoseGraph:
         info: information matrix (stiffness, Σ⁻¹) of each edge in the 6-D error coordinates
             ``(x, y, z, rot x, rot y, rot z)``, shape ``(M, 6, 6)``; rows a kind does not
             constrain are zero.
+        clamped_edges: edges whose information :func:`make_graph` eigen-clamped, sorted.
+        clamped_info: their information as given (symmetrized, before clamping), shape
+            ``(len(clamped_edges), 6, 6)``: :func:`chi2_as_written` weighs with it. The
+            solvers never read it; ``info`` is the graph's information.
     """
 
     planar: bool
@@ -79,6 +83,7 @@ class PoseGraph:
     meas_t: Array
     info: Array
     clamped_edges: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    clamped_info: Array = field(default_factory=lambda: np.zeros((0, 6, 6)))
 
     @property
     def num_nodes(self) -> int:
@@ -100,7 +105,7 @@ class PoseGraph:
         return PoseGraph(
             self.planar, self.ids.copy(), self.R.copy(), self.t.copy(), self.kind.copy(),
             self.a.copy(), self.b.copy(), self.meas_R.copy(), self.meas_t.copy(),
-            self.info.copy(), self.clamped_edges.copy(),
+            self.info.copy(), self.clamped_edges.copy(), self.clamped_info.copy(),
         )
 
     def with_estimate(self, R: Array, t: Array) -> PoseGraph:
@@ -127,7 +132,7 @@ def make_graph(
     Information matrices are symmetrized and eigen-clamped (doc/design.md, Conventions):
     eigenvalues below :data:`INFO_EIG_FLOOR` × the largest are raised to that floor, so that
     no edge is indefinite or singular in the coordinates it constrains. Clamped edges are logged
-    and listed in ``clamped_edges``.
+    and listed in ``clamped_edges``, their information as given kept in ``clamped_info``.
 
     Raises:
         GraphError: an edge refers to a node that does not exist, or is a self-loop.
@@ -141,10 +146,13 @@ def make_graph(
     for name, arr in (("estimate", t), ("measurement", meas_t), ("information", info)):
         if not np.all(np.isfinite(arr)):
             raise InputError(f"non-finite {name} values in the graph")
-    info, clamped = condition_information(kind, np.asarray(info, dtype=float), planar)
+    given = np.asarray(info, dtype=float)
+    info, clamped = condition_information(kind, given, planar)
+    as_given = 0.5 * (given[clamped] + np.swapaxes(given[clamped], -1, -2))
     return PoseGraph(
         planar, np.asarray(ids, dtype=np.int64), np.asarray(R, float), np.asarray(t, float),
         kind, a, b, np.asarray(meas_R, float), np.asarray(meas_t, float), info, clamped,
+        as_given,
     )
 
 
@@ -238,6 +246,20 @@ def edge_chi2(graph: PoseGraph, R: Array | None = None, t: Array | None = None) 
 def chi2(graph: PoseGraph, R: Array | None = None, t: Array | None = None) -> float:
     """Total χ² (the thesis' "energy") of the graph at the estimate ``(R, t)``."""
     return float(np.sum(edge_chi2(graph, R, t)))
+
+
+def chi2_as_written(graph: PoseGraph, R: Array | None = None, t: Array | None = None
+                    ) -> float:
+    """χ² of the problem as given, at the estimate ``(R, t)``: the eigen-clamped edges weighed
+    with their information before clamping (``clamped_info``), the others as in
+    :func:`chi2`. An information matrix the reader let through slightly indefinite can make
+    its edge's term negative."""
+    info = graph.info.copy()
+    info[graph.clamped_edges] = graph.clamped_info
+    dof = graph.dof
+    e = edge_errors(graph, R, t)[:, dof]
+    S = info[np.ix_(np.arange(graph.num_edges), dof, dof)]
+    return float(np.einsum("mi,mij,mj->", e, S, e))
 
 
 def odometry_chain(graph: PoseGraph) -> tuple[Array, Array]:

@@ -12,7 +12,7 @@ import pytest
 from h2o_slam.app.cli.common import ProgressLine
 from h2o_slam.app.cli.solve import main
 from h2o_slam.baselines.chi2_metrics import METRICS, all_chi2
-from h2o_slam.core.graph import chi2
+from h2o_slam.core.graph import chi2, edge_errors
 from h2o_slam.io.g2o import read_g2o, write_g2o
 from h2o_slam.io.synthetic import grid3d, manhattan
 
@@ -118,7 +118,9 @@ def test_default_is_exact_to_convergence_from_the_tree(planar_file, tmp_path, ca
     code, err, _ = run([str(planar_file), "-o", str(out), "--report", str(report), "-q"],
                        capsys)
     data = json.loads(report.read_text())
-    assert code == 0 and err == []
+    # The one line on stderr is the certificate's.
+    assert code == 0 and err == [f"h2o-solve: {data['certificate']['message']}"]
+    assert data["certificate"]["certified"] is True
     assert (data["mode"], data["converged"]) == ("exact", True)
     # The robust default runs from the odometry's tree and from LAGO and names the start kept.
     assert data["init"] in ("tree", "lago") and data["robust"]["dropped"] == 0
@@ -137,7 +139,7 @@ def test_default_is_exact_to_convergence_from_the_tree(planar_file, tmp_path, ca
 def test_exact_at_its_cap_says_so(planar_file, tmp_path, capsys):
     report = tmp_path / "r.json"
     code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--passes", "1",
-                        "--report", str(report), "-q"], capsys)
+                        "--report", str(report), "-q", "--certify", "off"], capsys)
     data = json.loads(report.read_text())
     assert code == 0 and data["converged"] is False
     assert data["passes"] == data["iterations"] == 1
@@ -210,8 +212,9 @@ def test_progress_line_after_a_second_and_quiet(planar_file, tmp_path, capsys):
     with ProgressLine("h2o-solve", period_s=0.05, stream=stream, enabled=False):
         time.sleep(0.15)
     assert stream.getvalue() == ""
-    # A solve shorter than the period prints nothing.
-    code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o")], capsys)
+    # A solve shorter than the period prints nothing (the certificate's line is no progress).
+    code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--certify", "off"],
+                       capsys)
     assert code == 0 and err == []
 
 
@@ -247,8 +250,12 @@ def test_default_exact_solve_drops_planted_false_closures(tmp_path, capsys):
     code, err, _ = run([str(path), "-o", str(out), "--report", str(report), "-q"], capsys)
     data = json.loads(report.read_text())["robust"]
     assert code == 0
-    assert err == [f"h2o-solve: robust: dropped 5 of {data['weighed']} loop closures and fixes "
-                   "as outliers (listed in the report's robust.dropped_edges)"]
+    assert err[0] == (f"h2o-solve: robust: dropped 5 of {data['weighed']} loop closures and "
+                      "fixes as outliers (listed in the report's robust.dropped_edges)")
+    # The certificate speaks of the edges kept: the outlier-free problem's optimum.
+    certificate = json.loads(report.read_text())["certificate"]
+    assert err[1:] == [f"h2o-solve: {certificate['message']}"] and certificate["certified"]
+    assert certificate["edges"] == planted.graph.num_edges - 5
     assert data["dropped_edges"] == np.flatnonzero(planted.outlier).tolist()
     solved = read_g2o(out)
     best = chi2(clean, *_exact(clean))
@@ -256,7 +263,7 @@ def test_default_exact_solve_drops_planted_false_closures(tmp_path, capsys):
     assert data["chi2_accepted"] == pytest.approx(best, rel=1e-6)
     plain = tmp_path / "plain.json"
     code, err, _ = run([str(path), "-o", str(tmp_path / "p.g2o"), "--robust", "off",
-                        "--report", str(plain), "-q"], capsys)
+                        "--report", str(plain), "-q", "--certify", "off"], capsys)
     assert code == 0 and err == [] and json.loads(plain.read_text())["robust"] is None
     bent = read_g2o(tmp_path / "p.g2o")
     assert chi2(clean, bent.R, bent.t) > 10 * best
@@ -319,8 +326,8 @@ def test_a_fast_solve_of_a_slowly_read_file_prints_no_progress(planar_file, tmp_
         return real(path)
 
     monkeypatch.setattr(solve_cli, "read_g2o", slow_read)
-    code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--solver", solver],
-                       capsys)
+    code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--solver", solver,
+                        "--certify", "off"], capsys)
     assert code == 0 and err == [], err
 
 
@@ -352,7 +359,7 @@ def test_a_file_whose_closures_agree_far_better_than_stated_says_so(tmp_path, ca
     path, report = tmp_path / "loose.g2o", tmp_path / "r.json"
     write_g2o(path, loose)
     code, err, _ = run([str(path), "-o", str(tmp_path / "o.g2o"), "--report", str(report),
-                        "-q"], capsys)
+                        "-q", "--certify", "off"], capsys)
     data = json.loads(report.read_text())["robust"]
     assert code == 0 and data["dropped"] == 0
     assert data["closure_noise_scale"] < 1e-3
@@ -361,3 +368,102 @@ def test_a_file_whose_closures_agree_far_better_than_stated_says_so(tmp_path, ca
                    f"{1 / data['closure_noise_scale']:.3g} times better than their information "
                    "says (variance); their outlier thresholds are scaled by "
                    f"{data['closure_threshold_scale']:.3g}"]
+
+
+def test_certificate_of_a_3d_solution_read_back(tmp_path, capsys):
+    """The report's certificate speaks of the solution written: its χ² is the written
+    vertices', the refined point's no lower on the χ² than h2o's optimum by much."""
+    src, out, report = tmp_path / "g.g2o", tmp_path / "o.g2o", tmp_path / "r.json"
+    write_g2o(src, grid3d(40, seed=4).graph)
+    code, err, _ = run([str(src), "-o", str(out), "--report", str(report), "-q"], capsys)
+    cert = json.loads(report.read_text())["certificate"]
+    assert code == 0 and err == [f"h2o-solve: {cert['message']}"]
+    assert err[0].startswith("h2o-solve: certified globally optimal (λ_min = ")
+    assert cert["certified"] is True and cert["eig_converged"] and cert["refine_converged"]
+    assert -cert["tolerance"] <= cert["lambda_min"] and cert["tolerance"] > 0.0
+    graph, solved = read_g2o(src), read_g2o(out)
+    assert (cert["nodes"], cert["edges"]) == (graph.num_nodes, graph.num_edges)
+    assert cert["chi2_solution"] == pytest.approx(chi2(graph, solved.R, solved.t), rel=1e-9)
+    assert cert["sesync_cost"] <= cert["cost_at_solution"]
+    assert 0.0 < cert["max_rotation_moved_rad"] < 0.1 and cert["seconds"] > 0.0
+
+
+# A ring of six poses whose measured turns add up to 2π + 0.34 rad (0.6 rad of noise a
+# step), started winding once more than the odometry: Gauss-Newton ends in a local minimum
+# at χ² 589 (the global one is 1.9; test/core/test_certificate.py checks it is a minimum).
+RING = """VERTEX_SE2 0 1.000000 0.000000 0.000000
+VERTEX_SE2 1 -0.563847 0.825879 2.169833
+VERTEX_SE2 2 -0.503309 -0.864107 -2.098220
+VERTEX_SE2 3 0.928505 0.371319 0.380429
+VERTEX_SE2 4 -0.823168 0.567798 2.537764
+VERTEX_SE2 5 -0.390921 -0.920424 -1.972428
+EDGE_SE2 0 1 1.000000 0.130400 1.122636 10 0 0 10 0 100
+EDGE_SE2 1 2 1.000000 0.094708 0.967935 10 0 0 10 0 100
+EDGE_SE2 2 3 1.000000 -0.070374 1.431451 10 0 0 10 0 100
+EDGE_SE2 3 4 1.000000 -0.126542 1.110138 10 0 0 10 0 100
+EDGE_SE2 4 5 1.000000 -0.062327 0.725796 10 0 0 10 0 100
+EDGE_SE2 5 0 1.000000 0.004133 1.264155 10 0 0 10 0 100
+"""
+
+
+def test_a_local_minimum_is_not_certified(tmp_path, capsys):
+    src, report = tmp_path / "ring.g2o", tmp_path / "r.json"
+    src.write_text(RING)
+    code, err, _ = run([str(src), "-o", str(tmp_path / "o.g2o"), "--init", "input",
+                        "--robust", "off", "--report", str(report), "-q"], capsys)
+    data = json.loads(report.read_text())
+    cert = data["certificate"]
+    assert code == 0 and data["chi2_final"] > 500
+    assert err == [f"h2o-solve: could not certify: λ_min = {cert['lambda_min']:.3g} < "
+                   f"-{cert['tolerance']:.3g}"]
+    assert cert["certified"] is False and cert["lambda_min"] < -1.0
+    # from the tree start the same file reaches the global minimum, certified
+    code, err, _ = run([str(src), "-o", str(tmp_path / "o.g2o"), "--robust", "off",
+                        "--report", str(report), "-q"], capsys)
+    data = json.loads(report.read_text())
+    assert data["chi2_final"] < 2.0 and data["certificate"]["certified"] is True
+
+
+def test_certify_option(planar_file, tmp_path, capsys):
+    report = tmp_path / "r.json"
+    for args in (["--certify", "off"], ["--mode", "offline"], ["--solver", "lago"]):
+        code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--report",
+                            str(report), "-q", *args], capsys)
+        assert code == 0 and err == [] and json.loads(report.read_text())["certificate"] is None
+    code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--mode", "offline",
+                        "--certify", "on"], capsys)
+    assert code == 2 and err == ["h2o-solve: --certify on applies to --mode exact with "
+                                 "--solver h2o only"]
+
+
+def test_conditioned_information_is_counted_and_warned_about(tmp_path, capsys):
+    """An edge whose x and y information are perfectly correlated (singular) is conditioned;
+    the report and a warning say how much that changes χ² at the solution."""
+    src, out, report = tmp_path / "singular.g2o", tmp_path / "o.g2o", tmp_path / "r.json"
+    src.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nVERTEX_SE2 2 1 1 1.5\n"
+                   "EDGE_SE2 0 1 1 0 0 10 0 0 10 0 10\n"
+                   "EDGE_SE2 1 2 0 1.1 1.6 10 0 0 10 0 10\n"
+                   "EDGE_SE2 0 2 1.1 0.9 1.5 4 4 0 4 0 10\n")
+    code, err, _ = run([str(src), "-o", str(out), "--report", str(report), "-q",
+                        "--robust", "off", "--certify", "off"], capsys)
+    data = json.loads(report.read_text())
+    cond = data["conditioned"]
+    assert code == 0 and cond["edges"] == 1 and cond["clamped_edges"] == [2]
+    # as written, by hand: the singular matrix weighs the solution's error of edge 2
+    graph, solved = read_g2o(src), read_g2o(out)
+    e = edge_errors(graph, solved.R, solved.t)[:, [0, 1, 5]]
+    singular = np.array([[4.0, 4.0, 0.0], [4.0, 4.0, 0.0], [0.0, 0.0, 10.0]])
+    written = sum(e[k] @ graph.info[k][np.ix_([0, 1, 5], [0, 1, 5])] @ e[k] for k in (0, 1))
+    written += e[2] @ singular @ e[2]
+    assert cond["chi2_as_written"] == pytest.approx(written, rel=1e-6)
+    assert cond["chi2_conditioned"] == pytest.approx(data["chi2_final"], rel=1e-9)
+    assert cond["chi2_difference"] == pytest.approx(
+        cond["chi2_conditioned"] - cond["chi2_as_written"], rel=1e-9)
+    assert len(err) == 1 and err[0].startswith(
+        "h2o-solve: warning: 1 singular or nearly singular information matrices were "
+        "conditioned"), err
+    assert f"{cond['chi2_as_written']:.9g} as written" in err[0]
+    # a file without such matrices reports none
+    write_g2o(src, manhattan(20, seed=1).graph)
+    assert main([str(src), "-o", str(out), "--report", str(report), "-q"]) == 0
+    assert json.loads(report.read_text())["conditioned"] is None

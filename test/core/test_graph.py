@@ -15,6 +15,7 @@ from h2o_slam.core.graph import (
     EdgeKind,
     PoseGraph,
     chi2,
+    chi2_as_written,
     edge_chi2,
     edge_errors,
     make_graph,
@@ -165,6 +166,30 @@ def test_eigen_clamping_of_indefinite_information(caplog: pytest.LogCaptureFixtu
     assert c[1] > 0.0
     # An information matrix that needs no clamping is kept exactly as given.
     np.testing.assert_array_equal(g.info[0], planar_info(good))
+
+
+def test_clamped_information_is_kept_as_given_for_chi2_as_written() -> None:
+    # x and y perfectly correlated: singular, clamped; the error (1, -1) lies in its null
+    # space, so as written that edge costs nothing along it, conditioned a little.
+    singular = np.array([[4.0, 4.0, 0.0], [4.0, 4.0, 0.0], [0.0, 0.0, 9.0]])
+    good = np.diag([2.0, 3.0, 4.0])
+    poses = [planar_pose(0, 0, 0), planar_pose(1, 0, 0), planar_pose(2, -1, 0.1)]
+    edges = [
+        (EdgeKind.RELATIVE, 0, 1, *planar_pose(1, 0, 0), planar_info(good)),
+        (EdgeKind.RELATIVE, 1, 2, *planar_pose(0, 0, 0), planar_info(singular)),
+    ]
+    g = build(True, poses, edges)
+    np.testing.assert_array_equal(g.clamped_edges, [1])
+    np.testing.assert_array_equal(g.clamped_info, [planar_info(singular)])
+    e = edge_errors(g)[1, PLANAR]
+    by_hand = edge_chi2(g)[0] + e @ singular @ e
+    assert chi2_as_written(g) == pytest.approx(by_hand, rel=1e-12)
+    assert chi2(g) - chi2_as_written(g) == pytest.approx(
+        e @ (g.info[1][np.ix_(PLANAR, PLANAR)] - singular) @ e, rel=1e-6)
+    assert chi2(g) > chi2_as_written(g)
+    # Copies carry it; a graph without clamped edges has the same χ² either way.
+    np.testing.assert_array_equal(g.copy().clamped_info, g.clamped_info)
+    assert chi2_as_written(planar_triangle()) == chi2(planar_triangle())
 
 
 def test_information_is_symmetrized() -> None:

@@ -4,7 +4,8 @@
               [--tolerance T] [--init tree|input|lago|chordal] [--solver h2o|lago] [--d-max N]
               [--budget-ms X] [--gps-batch-size N] [--gps-every K --gps-sigma S]
               [--metric h2o|gtsam|g2o] [--report REPORT.json] [--trace TRACE.json]
-              [--idle-s S] [--samples N] [--period-ms P] [--quiet]
+              [--idle-s S] [--samples N] [--period-ms P] [--robust auto|gnc|off]
+              [--certify auto|on|off] [--quiet]
 
 The work is :func:`solve_file`; this module's ``main`` only parses arguments, prints, and maps
 errors to a one-line message and an exit code (2: the command line, 1: the input).
@@ -35,7 +36,7 @@ from h2o_slam.app.cli.common import (
 )
 from h2o_slam.baselines.chi2_metrics import METRICS, all_chi2
 from h2o_slam.core.errors import H2OError, InputError
-from h2o_slam.core.graph import PoseGraph, edge_chi2
+from h2o_slam.core.graph import INFO_EIG_FLOOR, PoseGraph, chi2, chi2_as_written, edge_chi2
 from h2o_slam.core.modes import (
     EXACT_ITERATIONS,
     INITS,
@@ -66,6 +67,7 @@ from h2o_slam.io.synthetic import add_gps
 MODES = ("exact", "offline", "online")
 SOLVERS = ("h2o", "lago")
 ROBUST = ("auto", "gnc", "off")
+CERTIFY = ("auto", "on", "off")
 DEFAULT_PASSES = {"offline": 10, "online": 0, "exact": EXACT_ITERATIONS}
 PROG = "h2o-solve"
 
@@ -98,6 +100,9 @@ class SolveOptions:
         robust: ``auto`` (GNC-TLS in exact mode, none elsewhere), ``gnc`` or ``off``: loop
             closures and GPS fixes weighed as possible outliers, odometry trusted
             (:mod:`h2o_slam.core.robust`).
+        certify: ``auto`` (the default: after exact-mode solves with the H₂O solver), ``on``
+            (the same, refused elsewhere) or ``off``: test the solution's global optimality
+            with SE-Sync's certificate (:mod:`h2o_slam.core.certificate`).
     """
 
     mode: str = "exact"
@@ -114,6 +119,7 @@ class SolveOptions:
     samples: int = 0
     period_ms: float = 0.0
     robust: str = "auto"
+    certify: str = "auto"
 
     @property
     def robust_config(self) -> RobustConfig | None:
@@ -121,6 +127,11 @@ class SolveOptions:
         on = self.robust == "gnc" or (self.robust == "auto" and self.mode == "exact"
                                       and self.solver == "h2o")
         return RobustConfig() if on else None
+
+    @property
+    def certifies(self) -> bool:
+        """Whether the solution's global optimality is tested (exact mode, H₂O solver)."""
+        return self.certify != "off" and self.mode == "exact" and self.solver == "h2o"
 
     def __post_init__(self) -> None:
         for name, value, allowed in (("solver", self.solver, SOLVERS),
@@ -151,6 +162,11 @@ class SolveOptions:
             raise InputError("--robust gnc applies to --mode exact with --solver h2o only")
         if self.period_ms and (self.mode != "online" or self.budget_ms is None):
             raise InputError("--period-ms applies to --mode online with --budget-ms only")
+        if self.certify not in CERTIFY:
+            raise InputError(f"unknown certify {self.certify!r}; choose one of "
+                             f"{', '.join(CERTIFY)}")
+        if self.certify == "on" and (self.mode != "exact" or self.solver != "h2o"):
+            raise InputError("--certify on applies to --mode exact with --solver h2o only")
 
 
 @dataclass
@@ -190,6 +206,8 @@ class SolveReport:
     exact: dict[str, Any] | None = None
     samples: list[list[float]] | None = None
     robust: dict[str, Any] | None = None
+    certificate: dict[str, Any] | None = None
+    conditioned: dict[str, Any] | None = None
 
 
 def solve_file(
@@ -269,8 +287,34 @@ def solve_file(
         exact=asdict(result.exact) if result.exact is not None else None,
         samples=[list(sample) for sample in result.samples] if online else None,
         robust=_robust_summary(graph, result),
+        certificate=_certificate(graph, result) if opt.certifies else None,
+        conditioned=_conditioned(graph, result),
     )
     return report, result
+
+
+def _certificate(graph: PoseGraph, result: SolveResult) -> dict[str, Any]:
+    """The report's certificate: SE-Sync's test of the solution over the edges the solve
+    kept (all of them without robust estimation; :mod:`h2o_slam.core.certificate`)."""
+    # Imported here: scipy's eigensolvers add 0.1-0.2 s to every start-up otherwise.
+    from h2o_slam.core.certificate import certify
+
+    keep = None if result.weights is None else result.weights > 0.5
+    return asdict(certify(graph, result.R, result.t, keep))
+
+
+def _conditioned(graph: PoseGraph, result: SolveResult) -> dict[str, Any] | None:
+    """The report's account of the information matrices the reader eigen-clamped: how many,
+    and χ² at the solution with the conditioned information (what was solved) and with the
+    file's as written. ``None`` when none was."""
+    count = len(graph.clamped_edges)
+    if not count:
+        return None
+    solved = chi2(graph, result.R, result.t)
+    written = chi2_as_written(graph, result.R, result.t)
+    return {"edges": count, "clamped_edges": graph.clamped_edges.tolist(),
+            "eigenvalue_floor": INFO_EIG_FLOOR, "chi2_conditioned": solved,
+            "chi2_as_written": written, "chi2_difference": solved - written}
 
 
 def _robust_summary(graph: PoseGraph, result: SolveResult) -> dict[str, Any] | None:
@@ -387,6 +431,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="loop closures and GPS fixes as possible outliers (GNC with a "
                         "truncated quadratic; odometry trusted): auto = in exact mode "
                         "(default), gnc, or off (plain least squares)")
+    p.add_argument("--certify", choices=CERTIFY, default="auto",
+                   help="test the solution's global optimality with SE-Sync's certificate "
+                        "(auto = after exact-mode solves with h2o (default), on, or off); "
+                        "the answer in one line on stderr and in the report")
     p.add_argument("--report", type=Path, default=None, help="write a JSON report here")
     p.add_argument("--trace", type=Path, default=None,
                    help="online mode: write per-callback times and chi2 samples (JSON) here")
@@ -402,7 +450,7 @@ def _options(args: argparse.Namespace) -> SolveOptions:
         solver=args.solver, d_max=args.d_max, budget_ms=args.budget_ms,
         gps_batch_size=args.gps_batch_size, gps_every=args.gps_every,
         gps_sigma_m=args.gps_sigma, idle_s=args.idle_s, samples=args.samples,
-        period_ms=args.period_ms, robust=args.robust,
+        period_ms=args.period_ms, robust=args.robust, certify=args.certify,
     )
 
 
@@ -454,6 +502,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{PROG}: robust: dropped {report.robust['dropped']} of "
               f"{report.robust['weighed']} loop closures and fixes as outliers (listed in the "
               "report's robust.dropped_edges)", file=sys.stderr)
+    if report.conditioned is not None:
+        cond = report.conditioned
+        rel = abs(cond["chi2_difference"]) / max(abs(cond["chi2_as_written"]), 1e-300)
+        print(f"{PROG}: warning: {cond['edges']} singular or nearly singular information "
+              f"matrices were conditioned (eigenvalues raised to {INFO_EIG_FLOOR:g} of the "
+              f"largest; listed in the report's conditioned.clamped_edges); chi2 at the "
+              f"solution is {cond['chi2_conditioned']:.9g} conditioned, "
+              f"{cond['chi2_as_written']:.9g} as written (difference "
+              f"{cond['chi2_difference']:.3g}, {rel:.2g} of it)", file=sys.stderr)
+    if report.certificate is not None:
+        print(f"{PROG}: {report.certificate['message']}", file=sys.stderr)
     text = json.dumps(asdict(report), indent=2)
     if args.report is not None:
         args.report.write_text(text + "\n")
