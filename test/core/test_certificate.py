@@ -149,6 +149,22 @@ def test_certifies_the_optimum_of_a_planar_graph() -> None:
     assert cert.chi2_refined == pytest.approx(cert.chi2_solution, rel=0.1)
 
 
+def test_a_point_short_of_the_optimum_in_its_basin_is_not_certified() -> None:
+    """SE-Sync's cost certifies its optimum from there too, but Gauss–Newton on the χ² from
+    that optimum ends lower than the point given: the round trip refuses it."""
+    graph = manhattan(60, seed=1).graph
+    R, t = solved(graph)
+    rng = np.random.default_rng(3)
+    shifted = t + np.concatenate([rng.normal(0.0, 0.05, (len(t), 2)), np.zeros((len(t), 1))],
+                                 axis=1)
+    cert = C.certify(graph, R, shifted)
+    assert not cert.certified
+    assert cert.message.startswith("could not certify: Gauss–Newton from the certified")
+    assert cert.chi2_returned < cert.chi2_solution * (1 - C.ROUND_TRIP_TOLERANCE)
+    assert cert.lambda_min >= -cert.tolerance  # SE-Sync's own test passed
+    assert C.certify(graph, R, t).chi2_returned == pytest.approx(cert.chi2_returned, rel=1e-4)
+
+
 def test_certifies_the_optimum_of_a_3d_graph() -> None:
     graph = grid3d(27, seed=2).graph
     R, t = solved(graph)
