@@ -131,3 +131,22 @@ def test_a_tiny_generated_graph_through_every_solver(tmp_path: Path, monkeypatch
         assert run.chi2 <= 1.001 * result.optimum
     section = solvers.render_section([result], [])
     assert section.startswith(solvers.SECTION) and "| sphere_tiny | 24 |" in section
+
+
+def test_repeated_runs_are_timed_by_the_median():
+    times = iter([3.0, 1.0, 2.0])
+    run = solvers.repeated(lambda: _h2o(5.0, next(times)), 3)
+    assert run.times_s == [3.0, 1.0, 2.0] and run.time_s == 2.0 and run.wall_s == 3.0
+    lm_times = iter([(0.1, 0.5), (0.2, 0.2)])
+
+    def lm() -> object:
+        init_s, optimize_s = next(lm_times)
+        return _lm(5.0, optimize_s, "chordal", init_s)
+
+    assert solvers.repeated(lm, 2).time_s == pytest.approx(0.5)  # median of 0.6 and 0.4
+    once = solvers.repeated(lambda: _h2o(5.0, 7.0), 1)
+    assert once.times_s == [] and once.time_s == 7.0
+    calls = []
+    failed = solvers.repeated(lambda: calls.append(1) or _h2o(1.0, 1.0, status="timeout"), 3)
+    assert failed.status == "timeout" and len(calls) == 1  # not repeated
+    assert "| 3, 1, 2 |" in solvers.format_tables([_result(exact_global_ls=run)])
