@@ -107,7 +107,7 @@ def test_tables_have_every_run_and_the_targets():
             assert {line.count("|") for line in table} == {table[0].count("|")}
     assert any("| g | SE(3) | chordal | 1.000000 | 1.000500 | tree |" in line for line in lines)
     assert "SE(2) (1 graphs, G = lago): exact from tree: χ² target 1/1" in text
-    assert "exact from chordal --robust off: χ² target 1/1, time target 1/1, both 1/1" in text
+    assert "exact from chordal --robust off: χ² target 1/1, time target 1/1, both 1/1." in text
     assert "timeout" in text  # the offline run's status stands in its cells
 
 
@@ -150,3 +150,7 @@ def test_repeated_runs_are_timed_by_the_median():
     failed = solvers.repeated(lambda: calls.append(1) or _h2o(1.0, 1.0, status="timeout"), 3)
     assert failed.status == "timeout" and len(calls) == 1  # not repeated
     assert "| 3, 1, 2 |" in solvers.format_tables([_result(exact_global_ls=run)])
+    # Each graph's row shows its own repeats, not the last graph's.
+    other = solvers.repeated(lambda: _h2o(5.0, 9.0), 2)
+    text = solvers.format_tables([_result(exact_global_ls=run), _result(exact_global_ls=other)])
+    assert "| 3, 1, 2 |" in text and "| 9, 9 |" in text
