@@ -14,7 +14,7 @@ from h2o_slam.app.cli.solve import main
 from h2o_slam.baselines.chi2_metrics import METRICS, all_chi2
 from h2o_slam.core.graph import chi2, edge_errors
 from h2o_slam.io.g2o import read_g2o, write_g2o
-from h2o_slam.io.synthetic import grid3d, manhattan
+from h2o_slam.io.synthetic import add_gps, grid3d, manhattan
 
 
 @pytest.fixture(scope="module")
@@ -467,3 +467,19 @@ def test_conditioned_information_is_counted_and_warned_about(tmp_path, capsys):
     write_g2o(src, manhattan(20, seed=1).graph)
     assert main([str(src), "-o", str(out), "--report", str(report), "-q"]) == 0
     assert json.loads(report.read_text())["conditioned"] is None
+
+
+@pytest.mark.parametrize(("planar", "gps", "expected"),
+                         [(False, False, "chordal"), (False, True, "tree"), (True, False, "tree")])
+def test_the_default_start_is_chordal_for_3d_graphs_of_relative_edges(
+        tmp_path, planar, gps, expected):
+    """``--init auto`` (the default): rotations first where it applies, the tree elsewhere;
+    the report names the start used."""
+    graph = manhattan(40, seed=1).graph if planar else grid3d(27, seed=2).graph
+    src, out, report = tmp_path / "g.g2o", tmp_path / "o.g2o", tmp_path / "r.json"
+    if gps:
+        graph = add_gps(graph, graph.t, 5, 1.0)
+    write_g2o(src, graph)
+    assert main([str(src), "-o", str(out), "--report", str(report), "--robust", "off",
+                 "--certify", "off"]) == 0
+    assert json.loads(report.read_text())["init"] == expected
