@@ -150,16 +150,17 @@ class ExactProblem:
                                 rows.meas_R[i], rows.meas_t[i], rows.info[i])
 
     def solve(self, parent: np.ndarray, R: Array, t: Array, edges: int, generation: int,
-              iterations: int) -> Solution:
+              iterations: int, regraduate: bool = False) -> Solution:
         """Solve the snapshot ``(parent, R, t)`` (tree-local transforms) over its first
-        ``edges`` edges."""
+        ``edges`` edges; ``regraduate``: a robust solve also graduates afresh
+        (:func:`~h2o_slam.core.robust.converge_robust`)."""
         n = len(parent)
         solver = self.solver
         full = solver._edges.m
         solver._edges.m = edges  # the copy may already hold edges newer than the snapshot
         try:
             solver.tree = self._seed(parent, R, t, generation)
-            history, converged, weights = self._converge(iterations)
+            history, converged, weights = self._converge(iterations, regraduate)
             R_w, t_w = solver.world_poses()
         except Exception as exc:  # noqa: BLE001 - reported to the live side, which goes on
             self._last = None
@@ -171,7 +172,8 @@ class ExactProblem:
         return Solution(n, edges, generation, R_w, t_w, history[0], history[-1],
                         len(history) - 1, converged, weights=weights)
 
-    def _converge(self, iterations: int) -> tuple[list[float], bool, Array | None]:
+    def _converge(self, iterations: int, regraduate: bool
+                  ) -> tuple[list[float], bool, Array | None]:
         """Gauss–Newton, or the robust solve carried on from the last decisions."""
         solver = self.solver
         if self.robust is None:
@@ -184,7 +186,7 @@ class ExactProblem:
         trusted = odometry_edges(solver.kind, solver.a, solver.b)
         restart = lago_restart(solver.graph(copy=False)) if solver.planar else None
         outcome = converge_robust(solver, iterations, trusted, self.robust, weights=start,
-                                  restart=restart)
+                                  restart=restart, regraduate=regraduate)
         self._weights = outcome.weights.copy()
         return outcome.history, outcome.converged, outcome.weights
 
@@ -702,16 +704,19 @@ class Converger:
         tree = self.solver.tree
         return tree.parent[:n], tree.R[:n], tree.t[:n]
 
-    def _solve_inline(self, clock: Any, iterations: int) -> None:
+    def _solve_inline(self, clock: Any, iterations: int, regraduate: bool = False) -> None:
         """Solve here and now, ``iterations`` at most; the cost model learns seconds per
-        edge and linearization (one per iteration, and the start)."""
+        edge and linearization (one per iteration, and the start), except from a solve that
+        also graduated afresh (``regraduate``), which is not the budgeted solves' kind."""
         begin = clock()
         solver = self._inline.solver
         self._inline.add_edges(EdgeRows.of(self.solver, solver.num_edges))
         parent, R, t = self._snapshot()
         sol = self._inline.solve(parent.copy(), R.copy(), t.copy(), self.solver.num_edges,
-                                 self.generation, iterations)
-        self.inline_cost.update(clock() - begin, self.solver.num_edges * (sol.iterations + 1))
+                                 self.generation, iterations, regraduate)
+        if not regraduate:
+            self.inline_cost.update(clock() - begin,
+                                    self.solver.num_edges * (sol.iterations + 1))
         self._received(sol)
 
     #: Most edges one step writes to the worker's file (a few hundred microseconds): new
@@ -821,13 +826,15 @@ class Converger:
 
     def solve_now(self, clock: Any) -> Solution | None:
         """Solve inline and merge whole, dropping any solution still under way (it is older).
+        A robust solve here is the robust optimum: the carried decisions and a graduation
+        afresh, the lower TLS cost kept.
 
         Returns the merged solution (None without edges, or when the solve failed)."""
         self.generation += 1
         self._merging = None
         if self.solver.num_edges == 0:
             return None
-        self._solve_inline(clock, self.iterations)
+        self._solve_inline(clock, self.iterations, regraduate=True)
         if self._merging is None:
             return None
         return self._merge(math.inf, clock, 1.0)

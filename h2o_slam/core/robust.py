@@ -330,7 +330,7 @@ def solver_residuals(solver: H2OSolver) -> Array:
 def converge_robust(
     solver: H2OSolver, iterations: int, trusted: np.ndarray,
     config: RobustConfig | None = None, weights: Array | None = None,
-    restart: Restart | None = None,
+    restart: Restart | None = None, regraduate: bool = False,
 ) -> RobustOutcome:
     """GNC-TLS over the solver's edges (module docstring), then Gauss–Newton to convergence
     with the final 0/1 weights.
@@ -339,13 +339,57 @@ def converge_robust(
     decisions (0 or 1, NaN for edges it did not hold), for a solve carried on
     (:func:`carry_on`); ``None`` graduates from least squares (all 1). ``restart``: world
     poses ``(R, t)`` to start a solve with given weights from (LAGO of the weighted graph,
-    for planar graphs), tried when a warm-started re-admission fails.
+    for planar graphs), tried when a warm-started re-admission fails. ``regraduate``: with
+    ``weights``, also graduate afresh and keep the answer of lowest TLS cost, even when the
+    carried decisions raise no doubt (an explicit exact solve: decisions carried on through
+    a stream with many false closures can have settled in a local minimum).
     """
     cfg = config or RobustConfig()
     start = (solver.tree.R.copy(), solver.tree.t.copy())
     outcome = _decide(solver, iterations, trusted, cfg, weights, restart)
     if not outcome.converged:
         _polish(solver, outcome, start, iterations)
+    if regraduate and weights is not None:
+        outcome = _fresh_if_lower(solver, iterations, trusted, cfg, restart, outcome, start)
+    return outcome
+
+
+def _fresh_if_lower(solver: H2OSolver, iterations: int, trusted: np.ndarray,
+                    cfg: RobustConfig, restart: Restart | None, carried: RobustOutcome,
+                    seed: tuple[Array, Array]) -> RobustOutcome:
+    """The carried answer (the solver's map now) or a graduation from scratch, as a batch
+    solve runs it (from LAGO of the odometry and of every edge, or from ``seed`` without a
+    restart), whichever has the lowest TLS cost at the tightest thresholds any answer's
+    accepted closures allow (at its own, an answer keeping a false closure its tail would
+    refuse scores lower). Measured on manhattan as the node builds it, with 1,000 random
+    false closures streamed: the carried decisions kept one false closure (5.8 m off); the
+    graduation ends on the outlier-free map."""
+    answers = [(solver.tree.R.copy(), solver.tree.t.copy(), carried)]
+    starts: list[tuple[Array, Array] | Array] = [seed]
+    if restart is not None:
+        starts = [trusted.astype(float), np.ones(solver.num_edges)]
+    for start in starts:
+        if isinstance(start, tuple):
+            solver.tree.R[:], solver.tree.t[:] = start
+        else:
+            assert restart is not None
+            solver.tree.set_world_poses(*restart(start))
+        begin = (solver.tree.R.copy(), solver.tree.t.copy())
+        fresh = _decide(solver, iterations, trusted, cfg, None, restart)
+        if not fresh.converged:
+            _polish(solver, fresh, begin, iterations)
+        answers.append((solver.tree.R.copy(), solver.tree.t.copy(), fresh))
+    graph = solver.graph(copy=False)
+    r2 = []
+    for R, t, _ in answers:
+        solver.tree.R[:], solver.tree.t[:] = R, t
+        r2.append(solver_residuals(solver))
+    c2 = np.min([decided_thresholds(graph, trusted, cfg, answer.weights, r)
+                 for (_, _, answer), r in zip(answers, r2, strict=True)], axis=0)
+    best = int(np.argmin([tls_cost(r, ~trusted, c2) for r in r2]))
+    R, t, outcome = answers[best]
+    solver.tree.R[:], solver.tree.t[:] = R, t
+    solver.set_weights(outcome.weights)
     return outcome
 
 

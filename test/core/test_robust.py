@@ -445,3 +445,39 @@ def test_the_closure_noise_scale_ignores_closures_whose_error_overflows():
     with np.errstate(over="ignore", invalid="ignore"):
         scale = closure_noise_scale(extreme, trusted)
     assert np.isfinite(scale) and 0.5 < scale < 10.0
+
+
+def _graduations(monkeypatch) -> list[int]:
+    """Counts the graduations afresh that the robust solve runs."""
+    import h2o_slam.core.robust as robust
+
+    calls: list[int] = []
+    graduate = robust._graduate
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return graduate(*args, **kwargs)
+
+    monkeypatch.setattr(robust, "_graduate", counted)
+    return calls
+
+
+@pytest.mark.parametrize("regraduate", [False, True])
+def test_an_explicit_solve_also_graduates_afresh_and_keeps_the_lower_cost(
+        world, monkeypatch, regraduate):
+    """Carried decisions that raise no doubt are kept as they are, unless the solve is asked
+    to graduate afresh too (an explicit exact solve): then it graduates and ends on the
+    answer of lowest TLS cost, here the outlier-free map either way."""
+    graph, optimum = world
+    planted = plant_outliers(graph, "random", 10, seed=2)
+    g = planted.graph
+    trusted = odometry_edges(g.kind, g.a, g.b)
+    solver, _ = build_solver(g, init="tree", regularizer=False, trusted=trusted)
+    weights = np.where(planted.outlier, 0.0, 1.0)  # the right decisions, carried on
+    calls = _graduations(monkeypatch)
+    outcome = converge_robust(solver, 100, trusted, RobustConfig(), weights=weights,
+                              regraduate=regraduate)
+    assert (len(calls) > 0) == regraduate
+    assert np.all(outcome.weights[planted.outlier] == 0.0)
+    assert np.all(outcome.weights[~planted.outlier] == 1.0)
+    np.testing.assert_allclose(solver.world_poses()[1], optimum.t, atol=1e-6)

@@ -516,3 +516,30 @@ def test_a_gps_datum_drift_is_followed_not_dropped() -> None:
     assert mapper.decisions()["gps_fixes out"] == 0
     assert mapper.decisions()["decisions dropped"] == 0
     mapper.close()
+
+
+def test_exact_solve_graduates_afresh_and_callbacks_do_not(monkeypatch) -> None:
+    """``~/exact_solve`` returns the robust optimum: its solve also graduates from least
+    squares (decisions carried on through a stream can settle in a local minimum), while the
+    budgeted steps only carry the decisions on."""
+    import h2o_slam.core.robust as robust
+
+    asked: list[bool] = []
+    solve = robust.converge_robust
+
+    def spy(*args, **kwargs):
+        asked.append(bool(kwargs.get("regraduate", False)))
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr("h2o_slam.core.converge.converge_robust", spy)
+    truth = square_drive()
+    mapper = Mapper(MapperConfig(budget_ms=0.0))
+    feed(mapper, drifting_odometry(truth))
+    n = len(truth) - 1
+    mapper.add_loop_closure(stamp(0), stamp(n), planar_between(truth[0], truth[n]),
+                            np.eye(3) * 1e-3)
+    mapper.step(None)
+    carried = len(asked)
+    mapper.exact_solve()
+    assert not any(asked[:carried])
+    assert asked[carried:] == [True]
