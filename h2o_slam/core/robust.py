@@ -354,6 +354,17 @@ def converge_robust(
     return outcome
 
 
+def _start_at(solver: H2OSolver, start: tuple[Array, Array] | Array,
+              restart: Restart | None) -> None:
+    """Put the solver's map at ``start``: tree poses ``(R, t)``, or the restart from these
+    weights."""
+    if isinstance(start, tuple):
+        solver.tree.R[:], solver.tree.t[:] = start
+    else:
+        assert restart is not None
+        solver.tree.set_world_poses(*restart(start))
+
+
 def _fresh_if_lower(solver: H2OSolver, iterations: int, trusted: np.ndarray,
                     cfg: RobustConfig, restart: Restart | None, carried: RobustOutcome,
                     seed: tuple[Array, Array]) -> RobustOutcome:
@@ -369,11 +380,7 @@ def _fresh_if_lower(solver: H2OSolver, iterations: int, trusted: np.ndarray,
     if restart is not None:
         starts = [trusted.astype(float), np.ones(solver.num_edges)]
     for start in starts:
-        if isinstance(start, tuple):
-            solver.tree.R[:], solver.tree.t[:] = start
-        else:
-            assert restart is not None
-            solver.tree.set_world_poses(*restart(start))
+        _start_at(solver, start, restart)
         begin = (solver.tree.R.copy(), solver.tree.t.copy())
         fresh = _decide(solver, iterations, trusted, cfg, None, restart)
         if not fresh.converged:
@@ -434,11 +441,7 @@ def _decide(solver: H2OSolver, iterations: int, trusted: np.ndarray, cfg: Robust
     if restart is not None:
         starts += [np.ones(solver.num_edges), trusted.astype(float)]
     for start in starts:
-        if isinstance(start, tuple):
-            solver.tree.R[:], solver.tree.t[:] = start
-        else:
-            assert restart is not None
-            solver.tree.set_world_poses(*restart(start))
+        _start_at(solver, start, restart)
         graduated = _scored(solver, trusted, c2,
                             _graduate(solver, iterations, ~trusted, c2, cfg, restart))
         if best is None or graduated[0] < best[0]:
