@@ -669,7 +669,8 @@ def _drop_strained(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, ite
     strained = ratio > STRAIN
     order = [i for i in np.argsort(-ratio)[:MAX_TRIES] if strained[i]]
     places: list[np.ndarray] = []
-    if len(inside) * solver.num_nodes * solver.p <= DELETION_WORK:
+    every = len(inside) * solver.num_nodes * solver.p <= DELETION_WORK
+    if every:
         # The deletion χ² is, to first order, the dropped edge's innovation after the drop:
         # below SIGNIFICANT × c̄² the move would be refused, so it is not tried.
         deletion = deletion_chi2(solver, inside) / c2[inside]
@@ -682,12 +683,30 @@ def _drop_strained(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, ite
     singles = [np.array([i]) for i in dict.fromkeys(order)]
     groups = [np.flatnonzero(strained)[g] for g in _clusters(
         solver.a[inside[strained]], solver.b[inside[strained]], -ratio[strained]) if len(g) > 1]
+    candidates = singles + groups[:MAX_TRIES]
+    if not every:
+        candidates = _significant_drops(solver, inside, c2, candidates)
     moved = False
-    for group in singles + groups[:MAX_TRIES] + places:
+    for group in candidates + places:
         kept, _ = _try_move(solver, w, free, c2, inside[group], 0.0, iterations, history,
                             False, restart)
         moved |= kept
     return moved
+
+
+def _significant_drops(solver: H2OSolver, inside: np.ndarray, c2: Array,
+                       candidates: list[np.ndarray]) -> list[np.ndarray]:
+    """The drop candidates (positions in ``inside``) whose joint deletion χ² exceeds
+    :data:`SIGNIFICANT` times their summed ``c̄²``: to first order, what dropping them saves
+    against what the dropped closures then cost, the test a drop move must pass, here on
+    the few candidates where every accepted closure's deletion χ² would cost too much.
+    Measured on a 2,200-pose sphere with σ_R 0.1 rad and no false closure: 16 drops chosen
+    by strain alone were tried, none kept, 45 of the robust solve's 48 s."""
+    if not candidates:
+        return []
+    joint = group_chi2(solver, [inside[g] for g in candidates], sign=-1.0)
+    scale = np.array([c2[inside[g]].sum() for g in candidates])
+    return [g for g, ratio in zip(candidates, joint / scale, strict=True) if ratio > SIGNIFICANT]
 
 
 def _held_places(solver: H2OSolver, inside: np.ndarray, c2: Array) -> list[np.ndarray]:
