@@ -183,10 +183,8 @@ def graph_poses(graph: PoseGraph, problem: SyncProblem, R: Array, t: Array
 
 def sesync_cost(problem: SyncProblem, R: Array, t: Array) -> float:
     """``F(R, t)`` (module docstring) at poses of shapes ``(n, d, d)`` and ``(n, d)``."""
-    rot = R[problem.j] - R[problem.i] @ problem.R
-    trans = t[problem.j] - t[problem.i] - np.einsum("mab,mb->ma", R[problem.i], problem.t)
-    return float(problem.kappa @ np.sum(rot**2, axis=(1, 2))
-                 + problem.tau @ np.sum(trans**2, axis=1))
+    rot, trans = _residuals(problem, R, t)
+    return float(np.sum(rot**2) + np.sum(trans**2))
 
 
 def _generators(d: int) -> Array:
@@ -668,11 +666,11 @@ def _round_trip(graph: PoseGraph, keep: np.ndarray, R: Array, t: Array) -> float
     χ²'s global optimum only approximately (``F`` drops the information's correlations), so
     the solution counts as certified when the χ²'s own descent from there returns to it."""
     from h2o_slam.core.exact import converge_exact
-    from h2o_slam.core.modes import build_solver
+    from h2o_slam.core.modes import EXACT_ITERATIONS, build_solver
 
     solver, _ = build_solver(graph.with_estimate(R, t), init="input", regularizer=False)
     solver.set_weights(keep.astype(float))
-    converge_exact(solver, 100)
+    converge_exact(solver, EXACT_ITERATIONS)
     R_b, t_b = solver.world_poses()
     return float(np.sum(edge_chi2(graph, R_b, t_b)[keep]))
 

@@ -33,10 +33,9 @@ from h2o_slam.core.robust import (
     RobustConfig,
     chordal_restart,
     converge_robust,
-    decided_thresholds,
     lago_restart,
+    lowest_cost,
     odometry_edges,
-    tls_cost,
 )
 from h2o_slam.core.solver import H2OSolver, SolverConfig
 from h2o_slam.core.tree import PoseTree, spanning_parents, tree_edges
@@ -266,16 +265,11 @@ def solve_exact(
         history, converged = converge_exact(solver, iterations)
         return _exact_result(solver, start, history, converged, None)
     starts = [init] if init != "tree" else (
-        ["tree", "lago"] if graph.planar and not _has_global(graph) else ["tree"])
+        ["tree", "lago"] if graph.planar and not has_global(graph) else ["tree"])
     results = [_solve_robust(graph, iterations, config, name, robust) for name in starts]
     trusted = odometry_edges(graph.kind, graph.a, graph.b)
-    r2 = [edge_chi2(graph, result.R, result.t) for result in results]
-    # Scored at the tightest thresholds either answer's accepted closures allow: at its
-    # own, an answer that kept a false closure its tail would refuse scores lower.
-    c2 = np.min([decided_thresholds(graph, trusted, robust, _weights(result), r)
-                 for result, r in zip(results, r2, strict=True)], axis=0)
-    costs = [tls_cost(r, ~trusted, c2) for r in r2]
-    return results[int(np.argmin(costs))]
+    scored = [(_weights(result), edge_chi2(graph, result.R, result.t)) for result in results]
+    return results[lowest_cost(graph, trusted, robust, scored)]
 
 
 def _weights(result: SolveResult) -> Array:
@@ -288,7 +282,7 @@ def _solve_robust(graph: PoseGraph, iterations: int, config: SolverConfig | None
     trusted = odometry_edges(graph.kind, graph.a, graph.b)
     solver, start = build_solver(graph, config, init, regularizer=False, trusted=trusted)
     restart = lago_restart(graph) if graph.planar else (
-        None if _has_global(graph) else chordal_restart(graph))
+        None if has_global(graph) else chordal_restart(graph))
     outcome = converge_robust(solver, iterations, trusted, robust, restart=restart)
     return _exact_result(solver, start, outcome.history, outcome.converged, init)
 
@@ -305,7 +299,8 @@ def _exact_result(solver: H2OSolver, start: PoseGraph, history: list[float], con
     return result
 
 
-def _has_global(graph: PoseGraph) -> bool:
+def has_global(graph: PoseGraph) -> bool:
+    """The graph has GPS or compass edges (ones to the earth frame)."""
     return bool(np.any(graph.kind != EdgeKind.RELATIVE))
 
 

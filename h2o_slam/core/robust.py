@@ -354,6 +354,16 @@ def converge_robust(
     return outcome
 
 
+def lowest_cost(graph: PoseGraph, trusted: np.ndarray, config: RobustConfig,
+                answers: list[tuple[Array, Array]]) -> int:
+    """Which of ``answers`` (each: every edge's weight and unweighted χ²) has the lowest TLS
+    cost, scored at the tightest thresholds any answer's accepted closures allow: at its
+    own, an answer that kept a false closure its tail would refuse scores lower."""
+    c2 = np.min([decided_thresholds(graph, trusted, config, w, r2) for w, r2 in answers],
+                axis=0)
+    return int(np.argmin([tls_cost(r2, ~trusted, c2) for _, r2 in answers]))
+
+
 def _start_at(solver: H2OSolver, start: tuple[Array, Array] | Array,
               restart: Restart | None) -> None:
     """Put the solver's map at ``start``: tree poses ``(R, t)``, or the restart from these
@@ -388,15 +398,11 @@ def _fresh_if_lower(solver: H2OSolver, iterations: int, trusted: np.ndarray,
         if not fresh.converged:
             _polish(solver, fresh, begin, iterations)
         answers.append((solver.tree.R.copy(), solver.tree.t.copy(), fresh))
-    graph = solver.graph(copy=False)
-    r2 = []
-    for R, t, _ in answers:
+    scored = []
+    for R, t, answer in answers:
         solver.tree.R[:], solver.tree.t[:] = R, t
-        r2.append(solver_residuals(solver))
-    c2 = np.min([decided_thresholds(graph, trusted, cfg, answer.weights, r)
-                 for (_, _, answer), r in zip(answers, r2, strict=True)], axis=0)
-    best = int(np.argmin([tls_cost(r, ~trusted, c2) for r in r2]))
-    R, t, outcome = answers[best]
+        scored.append((answer.weights, solver_residuals(solver)))
+    R, t, outcome = answers[lowest_cost(solver.graph(copy=False), trusted, cfg, scored)]
     solver.tree.R[:], solver.tree.t[:] = R, t
     solver.set_weights(outcome.weights)
     return outcome

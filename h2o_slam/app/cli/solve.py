@@ -36,19 +36,13 @@ from h2o_slam.app.cli.common import (
 )
 from h2o_slam.baselines.chi2_metrics import METRICS, all_chi2
 from h2o_slam.core.errors import H2OError, InputError
-from h2o_slam.core.graph import (
-    INFO_EIG_FLOOR,
-    EdgeKind,
-    PoseGraph,
-    chi2,
-    chi2_as_written,
-    edge_chi2,
-)
+from h2o_slam.core.graph import INFO_EIG_FLOOR, PoseGraph, chi2, chi2_as_written, edge_chi2
 from h2o_slam.core.modes import (
     EXACT_ITERATIONS,
     INITS,
     Progress,
     SolveResult,
+    has_global,
     sample_points,
     solve_exact,
     solve_lago,
@@ -362,7 +356,7 @@ def default_init(graph: PoseGraph) -> str:
     time on large-noise spheres (σ_R ≥ 0.2 rad: 46-55 s against 106-123 s); on planar
     graphs the robust solve already runs from the tree and from LAGO and keeps the better
     answer (from LAGO alone, intel with 10 false closures ends 14 m off)."""
-    if graph.planar or np.any(graph.kind != EdgeKind.RELATIVE):
+    if graph.planar or has_global(graph):
         return "tree"
     return "chordal"
 
