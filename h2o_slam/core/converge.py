@@ -487,6 +487,9 @@ class LiveIterations:
         self.system = ExactSystem(solver)
         self.damping = 0.0
         self.iterations = 0
+        #: Edges in the system of the last step the map took: a budgeted update of any of
+        #: them after it would move the map away from that step's better χ².
+        self.solved_edges = 0
         self._key: tuple[int, int, int] | None = None
         self._settled: tuple[int, int, int] | None = None
         self._world: WorldSystem | None = None
@@ -549,6 +552,7 @@ class LiveIterations:
                 solver.tree.set_world_poses(self._trial.R, self._trial.x)
                 self.take_cost.update(clock() - begin, n)
                 self.iterations += 1
+                self.solved_edges = key[0]
                 before, self._lin, self._trial = self._lin.chi2, self._trial, None
                 # converge_exact's test, so that the iterations are its own
                 if settled(before, self._lin.chi2, solver.config.exact_tolerance):
@@ -676,6 +680,11 @@ class Converger:
             self._live = LiveIterations(self.solver)
         self._live.run((self.solver.num_edges, self.generation, self.state.merges),
                        deadline, clock, safety)
+
+    @property
+    def live_solved_edges(self) -> int:
+        """Edges the live map's last Gauss–Newton step solved together (0: none yet)."""
+        return 0 if self._live is None else self._live.solved_edges
 
     @property
     def live_iterations(self) -> int:
