@@ -170,6 +170,21 @@ class H2OSolver:
         return self._edges.info[: self._edges.m]
 
     @property
+    def planar_meas(self) -> Array:
+        """A planar solver's measurement of each edge as ``(x, y, yaw)``."""
+        return self._edges.planar_meas[: self._edges.m]
+
+    @property
+    def planar_info(self) -> Array:
+        """A planar solver's information of each edge over ``(x, y, yaw)``."""
+        return self._edges.planar_info[: self._edges.m]
+
+    @property
+    def planar_cov(self) -> Array:
+        """The inverse of :attr:`planar_info` (a pseudo-inverse where it is singular)."""
+        return self._edges.planar_cov[: self._edges.m]
+
+    @property
     def W(self) -> Array:
         """Whitening ``W`` (``WᵀW = S`` in the coordinates in use) of each edge."""
         return self._edges.W[: self._edges.m]
