@@ -27,8 +27,8 @@ F = TypeVar("F", bound=Callable[..., Any])
 #: Modules whose kernels call one another. numba's cache checks only the source file of the
 #: function it compiled, so a kernel inlined from another module would go stale when that
 #: module changes: the cache folder is keyed by the sources of all of them.
-_KERNEL_MODULES = ("compiled", "exact", "geometry", "jacobians", "hybrid", "interpolate",
-                   "solver", "tree")
+_KERNEL_MODULES = ("compiled", "condensed", "exact", "geometry", "jacobians", "hybrid",
+                   "interpolate", "solver", "tree")
 
 
 def _cache_dir() -> str:

@@ -35,7 +35,7 @@ import numpy as np
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.blas import BlasLimit
-from h2o_slam.core.condensed import CondensedLoop, Reduced, planar_poses
+from h2o_slam.core.condensed import CondensedLoop, Reduced, planar_chi2, planar_poses
 from h2o_slam.core.converge import BACKGROUNDS, Converger, Solution
 from h2o_slam.core.errors import GraphError
 from h2o_slam.core.geometry import Array
@@ -956,12 +956,8 @@ CONDENSE_SHARE = 4
 def _planar_chi2(solver: H2OSolver, edges: np.ndarray, pose: Array) -> float:
     """Σ wᵢ χ²ᵢ over a planar solver's relative ``edges`` at world ``(x, y, yaw)`` rows
     ``pose``: the condensed solve's check, from the edge table's planar copies."""
-    a, b = solver.a[edges], solver.b[edges]
-    err = geo.planar_between(solver.planar_meas[edges],
-                             geo.planar_between(pose[a], pose[b]))
-    # Two-operand einsums: numpy's path for the four-operand sum was several times slower.
-    chi2 = np.einsum("mi,mi->m", np.einsum("mij,mj->mi", solver.planar_info[edges], err), err)
-    return float(solver.weight[edges] @ chi2)
+    return planar_chi2(solver.a[edges], solver.b[edges], solver.planar_meas[edges],
+                       solver.planar_info[edges], solver.weight[edges], pose)
 
 
 def _moved_chi2(graph: PoseGraph, edges: np.ndarray, weight: Array, R: Array, t: Array

@@ -23,9 +23,11 @@ from pathlib import Path
 import numpy as np
 
 from h2o_slam.core import geometry as geo
+from h2o_slam.core.condensed import Reduced, solve_loop
 from h2o_slam.core.exact import converge_exact
 from h2o_slam.core.graph import EARTH, EdgeKind
 from h2o_slam.core.jacobians import chain_jacobians, endpoint_jacobians
+from h2o_slam.core.loop_spread import dead_reckon
 from h2o_slam.core.solver import H2OSolver
 from h2o_slam.core.tree import PoseTree, spanning_parents
 
@@ -107,6 +109,19 @@ def _run_every_path() -> None:
         tree.world_pose(tree.n - 1)
         converge_exact(solver, 2)  # the sparse factorization's first uses
     spanning_parents(2, np.array([0]), np.array([1]))
+    _condensed_loop()
+
+
+def _condensed_loop() -> None:
+    """A loop of eight poses closed back to its start through the condensed solve."""
+    inc = np.tile([1.0, 0.0, np.pi / 4], (8, 1))
+    cov = np.tile(np.eye(3), (8, 1, 1))
+    pose = np.vstack([np.zeros(3), dead_reckon(np.zeros(3), inc)[1:]])
+    closure = Reduced(np.array([0]), np.array([8]), np.zeros((1, 3)), np.eye(3)[None],
+                      np.empty(0, np.int64))
+    solve_loop(pose, 0, inc, cov, closure, 2, 1e-6, lambda: False)
+    Reduced(closure.a, closure.b, closure.meas, closure.info, np.array([8])).rotations_first(
+        pose)
 
 
 def byte_compile() -> None:

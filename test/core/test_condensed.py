@@ -10,7 +10,8 @@ from hypothesis import strategies as st
 
 from h2o_slam.core import condensed as cd
 from h2o_slam.core import geometry as geo
-from h2o_slam.core.graph import PoseGraph, chi2
+from h2o_slam.core.graph import PoseGraph, chi2, edge_chi2
+from h2o_slam.core.loop_spread import dead_reckon
 from h2o_slam.core.modes import solve_exact
 from h2o_slam.io.synthetic import manhattan
 
@@ -37,6 +38,23 @@ def test_relative_jacobians_are_the_errors_derivatives(a, b, meas) -> None:
             np.testing.assert_allclose(J[:, j], diff, atol=1e-5)
 
 
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_planar_chi2_is_the_graphs_weighted_edge_chi2(seed) -> None:
+    g = manhattan(60, seed=seed % 1000).graph
+    rng = np.random.default_rng(seed)
+    R, t = g.R.copy(), g.t.copy()
+    t[:, :2] += rng.normal(0, 0.5, (len(t), 2))
+    R = geo.yaw_to_matrix(geo.matrix_to_yaw(R) + rng.normal(0, 0.3, len(R)))
+    weight = rng.uniform(0, 1, g.num_edges)
+    moved = PoseGraph(g.planar, g.ids, R, t, g.kind, g.a, g.b, g.meas_R, g.meas_t, g.info)
+    pose = cd.planar_poses(R, t)
+    S = g.info[:, geo.PLANAR_DOF[:, None], geo.PLANAR_DOF[None, :]]
+    meas = np.column_stack([g.meas_t[:, :2], geo.matrix_to_yaw(g.meas_R)])
+    assert cd.planar_chi2(g.a, g.b, meas, S, weight, pose) == pytest.approx(
+        float(weight @ edge_chi2(moved)), rel=1e-9)
+
+
 def test_a_chains_covariance_is_its_increments_carried_to_its_end() -> None:
     """First order: ``J Σ Jᵀ`` with ``J`` the composition's derivative by each increment's
     right perturbation, taken numerically."""
@@ -44,7 +62,7 @@ def test_a_chains_covariance_is_its_increments_carried_to_its_end() -> None:
     inc = np.column_stack([np.ones(30), rng.normal(0, 0.2, 30), rng.normal(0, 0.4, 30)])
     cov = np.array([np.diag(rng.uniform(0.01, 0.1, 3)) for _ in range(30)])
     chains = cd.condense(0, np.array([30]), inc, cov)
-    end = cd.dead_reckon(np.zeros(3), inc)[-1]
+    end = dead_reckon(np.zeros(3), inc)[-1]
     expected = np.zeros((3, 3))
     h = 1e-6
     for i in range(30):
@@ -52,8 +70,8 @@ def test_a_chains_covariance_is_its_increments_carried_to_its_end() -> None:
         for j in range(3):
             d = np.zeros((30, 3))
             d[i, j] = h
-            plus = cd.dead_reckon(np.zeros(3), geo.planar_compose(inc, d))[-1]
-            minus = cd.dead_reckon(np.zeros(3), geo.planar_compose(inc, -d))[-1]
+            plus = dead_reckon(np.zeros(3), geo.planar_compose(inc, d))[-1]
+            minus = dead_reckon(np.zeros(3), geo.planar_compose(inc, -d))[-1]
             J[:, j] = (geo.planar_between(end, plus) - geo.planar_between(end, minus)) / (2 * h)
         expected += J @ cov[i] @ J.T
     np.testing.assert_allclose(chains.cov[0], expected, rtol=1e-6, atol=1e-9)
@@ -102,7 +120,7 @@ def test_the_condensed_solve_of_a_whole_graph_reaches_its_optimum() -> None:
     g = manhattan(200, seed=1).graph
     inc, cov, cross = _parts(g, 0)
     start = cd.planar_poses(g.R, g.t)
-    start[1:] = cd.dead_reckon(start[0], inc)[1:]
+    start[1:] = dead_reckon(start[0], inc)[1:]
     solved, converged = cd.solve_loop(start, 0, inc, cov, cross, 30, 1e-12, lambda: False)
     assert converged
     assert _chi2(g, solved) / solve_exact(g).chi2_final < 1.0001
@@ -114,13 +132,13 @@ def _turned_loop(n: int = 300, bias: float = 1.6 / 300) -> PoseGraph:
     measurement with noise of its stated σ (0.1)."""
     from h2o_slam.core.graph import EdgeKind, make_graph
     step = np.array([1.0, 0.0, 2 * np.pi / n])
-    truth = cd.dead_reckon(np.zeros(3), np.tile(step, (n - 1, 1)))
+    truth = dead_reckon(np.zeros(3), np.tile(step, (n - 1, 1)))
     a = np.concatenate([np.arange(n - 1), [n // 2, n - 1]])
     b = np.concatenate([np.arange(1, n), [n // 4, 0]])
     meas = geo.planar_between(truth[a], truth[b])
     meas[: n - 1, 2] += bias
     meas += np.random.default_rng(0).normal(0.0, 0.1, meas.shape)
-    start = cd.dead_reckon(np.zeros(3), meas[: n - 1])
+    start = dead_reckon(np.zeros(3), meas[: n - 1])
     info = np.zeros((len(a), 6, 6))
     info[:, g_dof := geo.PLANAR_DOF, g_dof] = 100.0
     R, t = geo.yaw_to_matrix(start[:, 2]), np.column_stack([start[:, :2], np.zeros(n)])
