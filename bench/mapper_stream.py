@@ -72,13 +72,41 @@ def odometry_poses(graph: PoseGraph) -> np.ndarray:
     return poses
 
 
+def fitted_odometry(graph: PoseGraph) -> dict[str, float]:
+    """The mapper's odometry noise model (``MapperConfig.odom_*``) fitted to the graph's
+    odometry information, as a user calibrates the node for their robot: translation σ per
+    metre the median over increments of at least 0.1 m; heading σ per metre the median over
+    those that turn less than 0.05 rad, and per radian turned the median of what remains
+    over the turning ones (none below 0)."""
+    odo = np.flatnonzero(odometry_edges(graph.kind, graph.a, graph.b))
+    dof = np.array([0, 1, 5])
+    cov = np.linalg.inv(graph.info[odo][:, dof[:, None], dof[None, :]])
+    dist = np.linalg.norm(graph.meas_t[odo, :2], axis=1)
+    turn = np.abs(geo.matrix_to_yaw(graph.meas_R[odo]))
+    sig_t = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
+    sig_r = np.sqrt(cov[:, 2, 2])
+    moving = dist >= 0.1
+    per_m = float(np.median(sig_t[moving] / dist[moving])) if np.any(moving) else 0.05
+    straight = moving & (turn < 0.05)
+    yaw_per_m = float(np.median(sig_r[straight] / dist[straight])) if np.any(straight) else 0.0
+    turning = turn >= 0.05
+    yaw_per_rad = (float(np.median(np.maximum(sig_r[turning] - yaw_per_m * dist[turning], 0.0)
+                                   / turn[turning])) if np.any(turning) else 0.0)
+    return {"odom_sigma_per_m": per_m, "odom_yaw_sigma_per_m": yaw_per_m,
+            "odom_yaw_sigma_per_rad": yaw_per_rad}
+
+
 def stream_graph(graph: PoseGraph, budget_ms: float = 5.0, idle_s: float = 1.0,
-                 background: str = "process") -> StreamResult:
-    """Feed ``graph`` (planar) through a :class:`Mapper`; see the module docstring."""
+                 background: str = "process", odometry_model: dict[str, float] | None = None
+                 ) -> StreamResult:
+    """Feed ``graph`` (planar) through a :class:`Mapper`; see the module docstring.
+    ``odometry_model``: ``MapperConfig`` odometry noise fields (:func:`fitted_odometry`);
+    ``None``: the mapper's defaults."""
     poses = odometry_poses(graph)
     odometry = odometry_edges(graph.kind, graph.a, graph.b)
     config = MapperConfig(keyframe_distance=0.0, keyframe_angle=0.0,
-                          keyframe_period=0.5, budget_ms=budget_ms, background=background)
+                          keyframe_period=0.5, budget_ms=budget_ms, background=background,
+                          **(odometry_model or {}))
     mapper = Mapper(config)
     mapped = np.full(graph.num_edges, -1)
     times = []

@@ -7,6 +7,12 @@ import importlib
 import sys
 from pathlib import Path
 
+import numpy as np
+import pytest
+
+from h2o_slam.core import geometry as geo
+from h2o_slam.core.graph import EdgeKind, PoseGraph
+
 _BENCH = Path(__file__).resolve().parent.parent / "bench"
 if str(_BENCH) not in sys.path:
     sys.path.insert(0, str(_BENCH))
@@ -31,3 +37,29 @@ def test_the_summary_leaves_out_rows_skipped_by_design():
     rows = [_row("h2o"), _row("node", "skipped: 3-D (the node is planar)"), _row("lm")]
     assert robust.target(rows[1]) == ""
     assert robust.target_summary(rows).endswith("met on 1 of 1 rows.")
+
+
+def test_a_fitted_node_row_is_held_to_the_node_rows_targets():
+    assert robust.target(_row(robust.NODE_FITTED, max_ms=10.5)).startswith("missed: callbacks")
+
+
+def test_the_fitted_odometry_model_is_the_one_a_graph_was_written_with():
+    """Odometry written from the mapper's own noise model (σ 0.12 m per metre, heading σ
+    0.01 rad per metre and 0.03 per radian turned) gives those numbers back."""
+    mapper_stream = importlib.import_module("mapper_stream")
+    rng = np.random.default_rng(3)
+    n = 200
+    dist = rng.uniform(0.5, 2.0, n)
+    turn = np.where(rng.uniform(size=n) < 0.5, 0.0, rng.uniform(0.2, 1.5, n))
+    info = np.zeros((n, 6, 6))
+    info[:, 0, 0] = info[:, 1, 1] = 1.0 / (0.12 * dist) ** 2
+    info[:, 5, 5] = 1.0 / (0.03 * turn + 0.01 * dist) ** 2
+    info[:, 2, 2] = info[:, 3, 3] = info[:, 4, 4] = 1.0
+    meas_t = np.column_stack([dist, np.zeros(n), np.zeros(n)])
+    graph = PoseGraph(True, np.arange(n + 1), np.tile(np.eye(3), (n + 1, 1, 1)),
+                      np.zeros((n + 1, 3)), np.full(n, EdgeKind.RELATIVE, np.int8),
+                      np.arange(n), np.arange(1, n + 1), geo.yaw_to_matrix(turn), meas_t, info)
+    fitted = mapper_stream.fitted_odometry(graph)
+    assert fitted["odom_sigma_per_m"] == pytest.approx(0.12)
+    assert fitted["odom_yaw_sigma_per_m"] == pytest.approx(0.01)
+    assert fitted["odom_yaw_sigma_per_rad"] == pytest.approx(0.03)
