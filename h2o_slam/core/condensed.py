@@ -18,8 +18,11 @@ is then filled in given its two ends: its increments perturbed by the smallest c
 weighed by their covariances, that joins the ends (the loop spread with a hard
 constraint), which is the chain's own least-squares answer.
 
-Planar only: the planar spread's angle arithmetic does the filling in for every chain at
-once, and a planar loop closure is the common case on a ground robot.
+Planar only: a chain's angles add up, so condensing and filling in are one pass along it,
+and a planar loop closure is the common case on a ground robot. Those passes, the junctions'
+normal equations and the χ² of the moved edges are compiled kernels
+(:mod:`~h2o_slam.core.compiled`): in numpy, their dozens of calls over thousands of
+increments made kitti_00's last loop (4,450 poses) a 23 ms solve; compiled, 9 ms.
 """
 
 from __future__ import annotations
