@@ -79,7 +79,7 @@ def fitted_odometry(graph: PoseGraph) -> dict[str, float]:
     those that turn less than 0.05 rad, and per radian turned the median of what remains
     over the turning ones (none below 0)."""
     odo = np.flatnonzero(odometry_edges(graph.kind, graph.a, graph.b))
-    dof = np.array([0, 1, 5])
+    dof = geo.PLANAR_DOF
     cov = np.linalg.inv(graph.info[odo][:, dof[:, None], dof[None, :]])
     dist = np.linalg.norm(graph.meas_t[odo, :2], axis=1)
     turn = np.abs(geo.matrix_to_yaw(graph.meas_R[odo]))

@@ -119,7 +119,7 @@ def _condense(bounds: np.ndarray, inc: Array, cov: Array, meas: Array, chain_cov
         _walk_chain(zero, inc, still, lo, hi, walk)
         chain_cov[s] = _carry(walk, cov, still, lo, hi, carried, lin)
         meas[s, 0], meas[s, 1] = walk[hi - 1, 0], walk[hi - 1, 1]
-        meas[s, 2] = (walk[hi - 1, 2] + np.pi) % (2.0 * np.pi) - np.pi
+        meas[s, 2] = _wrapped(walk[hi - 1, 2])
 
 
 def fill(chains: Chains, pose: Array, inc: Array, moved: Array | None = None,
@@ -172,7 +172,7 @@ def _fill_chains(first: Array, last: Array, bounds: np.ndarray, inc: Array, cov:
             # e = J⁻¹ (target⁻¹ (first⁻¹ end)): the end's error in the increments' frame.
             ex, ey = out[hi - 1, 0] - first[s, 0], out[hi - 1, 1] - first[s, 1]
             rx, ry = c0 * ex + s0 * ey - tx, -s0 * ex + c0 * ey - ty
-            e2 = (out[hi - 1, 2] - first[s, 2] - tyaw + np.pi) % (2.0 * np.pi) - np.pi
+            e2 = _wrapped(out[hi - 1, 2] - first[s, 2] - tyaw)
             e0, e1 = ct * rx + st * ry, -st * rx + ct * ry
             ce, se = np.cos(e2), np.sin(e2)
             lin[0], lin[1], lin[2] = ce * e0 + se * e1, -se * e0 + ce * e1, e2
@@ -184,6 +184,12 @@ def _fill_chains(first: Array, last: Array, bounds: np.ndarray, inc: Array, cov:
                 ac = carried[i]
                 for c in range(3):
                     moved[i, c] = -(ac[0, c] * lam[0] + ac[1, c] * lam[1] + ac[2, c] * lam[2])
+
+
+@kernel
+def _wrapped(angle: float) -> float:
+    """``angle`` in ``[-π, π)``, as :func:`~h2o_slam.core.geometry.wrap_angle` for one."""
+    return (angle + np.pi) % (2.0 * np.pi) - np.pi
 
 
 @kernel
@@ -282,7 +288,7 @@ def _planar_chi2(a: np.ndarray, b: np.ndarray, meas: Array, info: Array, weight:
         rx, ry = ca * dx + sa * dy - meas[m, 0], -sa * dx + ca * dy - meas[m, 1]
         cm, sm = np.cos(meas[m, 2]), np.sin(meas[m, 2])
         e[0], e[1] = cm * rx + sm * ry, -sm * rx + cm * ry
-        e[2] = (pose[j, 2] - pose[i, 2] - meas[m, 2] + np.pi) % (2.0 * np.pi) - np.pi
+        e[2] = _wrapped(pose[j, 2] - pose[i, 2] - meas[m, 2])
         quad = 0.0
         for r in range(3):
             for c in range(3):

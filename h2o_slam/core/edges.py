@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from h2o_slam.core.geometry import Array
+from h2o_slam.core.geometry import Array, matrix_to_yaw
 
 
 def whitening(info: Array, dof: np.ndarray) -> Array:
@@ -61,7 +61,7 @@ class EdgeTable:
         self.W[e] = self.W_unit[e] = whitening(self.info[e], dof)
         self.weight[e] = 1.0
         if self.planar:
-            self._store_planar(slice(e, e + 1), dof)
+            self._store_planar(slice(e, e + 1), self.info[e:e + 1][:, dof[:, None], dof[None, :]])
         self.m += 1
         return e
 
@@ -85,7 +85,7 @@ class EdgeTable:
         self.W_unit[s] = self.W[s]
         self.weight[s] = 1.0
         if self.planar:
-            self._store_planar(s, dof)
+            self._store_planar(s, S)
         self.m = end
 
     def set_weights(self, edges: np.ndarray | slice, weights: Array) -> None:
@@ -93,11 +93,10 @@ class EdgeTable:
         self.weight[edges] = weights
         self.W[edges] = np.sqrt(self.weight[edges])[:, None, None] * self.W_unit[edges]
 
-    def _store_planar(self, s: slice, dof: np.ndarray) -> None:
-        R = self.meas_R[s]
+    def _store_planar(self, s: slice, S: Array) -> None:
+        """The planar copies of edges ``s``, ``S`` their information over ``(x, y, yaw)``."""
         self.planar_meas[s] = np.column_stack(
-            [self.meas_t[s, 0], self.meas_t[s, 1], np.arctan2(R[:, 1, 0], R[:, 0, 0])])
-        S = self.info[s][:, dof[:, None], dof[None, :]]
+            [self.meas_t[s, 0], self.meas_t[s, 1], matrix_to_yaw(self.meas_R[s])])
         self.planar_info[s] = S
         try:
             self.planar_cov[s] = np.linalg.inv(S)

@@ -37,7 +37,6 @@ from h2o_slam.core.exact import (
     settled,
 )
 from h2o_slam.core.geometry import Array
-from h2o_slam.core.graph import PoseGraph
 from h2o_slam.core.solver import H2OSolver
 from h2o_slam.core.timing import CostModel
 
@@ -195,20 +194,6 @@ def _planar_step(pose: Array, reverse: bool, meas: Array, cov: Array, cov_closur
         3, 3 * k).T
     lam = np.linalg.solve(S, e - A.transpose(1, 0, 2).reshape(3, 3 * k) @ moved.ravel())
     return -(MC.transpose(0, 2, 1) @ lam)
-
-
-def planar_edge_chi2(graph: PoseGraph, edges: np.ndarray, R: Array, t: Array) -> Array:
-    """χ² of a planar graph's relative ``edges`` at world poses ``(R, t)``, in ``(x, y, yaw)``:
-    :func:`~h2o_slam.core.graph.edge_chi2` restricted to planar relative edges."""
-    def planar(Rs: Array, ts: Array) -> Array:
-        return np.column_stack([ts[:, :2], np.arctan2(Rs[:, 1, 0], Rs[:, 0, 0])])
-
-    a, b = graph.a[edges], graph.b[edges]
-    meas = planar(graph.meas_R[edges], graph.meas_t[edges])
-    e = geo.planar_between(meas, geo.planar_between(planar(R[a], t[a]), planar(R[b], t[b])))
-    dof = geo.PLANAR_DOF
-    S = graph.info[edges][:, dof[:, None], dof[None, :]]
-    return np.einsum("mi,mij,mj->m", e, S, e)
 
 
 # --- the loop solved: Gauss–Newton on the poses a closure moves -----------------------------

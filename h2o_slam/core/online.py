@@ -40,7 +40,7 @@ from h2o_slam.core.converge import BACKGROUNDS, Converger, Solution
 from h2o_slam.core.errors import GraphError
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, edge_chi2
-from h2o_slam.core.loop_spread import LoopSolve, planar_edge_chi2, spread_loop
+from h2o_slam.core.loop_spread import LoopSolve, spread_loop
 from h2o_slam.core.robust import RobustConfig
 from h2o_slam.core.solver import H2OSolver, SolverConfig
 from h2o_slam.core.timing import CostModel, UpdateCost
@@ -897,10 +897,9 @@ class OnlineH2O:
         R_new, t_new = spread_loop(R, t, a, b, solver.meas_R[edge], solver.meas_t[edge],
                                    weight * solver.info[edge], solver.info[chain],
                                    solver.dof, self.online.spread_steps)
-        graph = solver.graph(copy=False)
         edges = np.flatnonzero(touched)
-        before = _moved_chi2(graph, edges, solver.weight[:m], R, t)
-        after = _moved_chi2(graph, edges, solver.weight[:m], R_new, t_new)
+        before = _moved_chi2(solver, edges, R, t)
+        after = _moved_chi2(solver, edges, R_new, t_new)
         if after < before:
             solver.tree.set_world_poses(R_new, t_new)
         self._count_spread(edge, after < before, "kept")
@@ -960,17 +959,17 @@ def _planar_chi2(solver: H2OSolver, edges: np.ndarray, pose: Array) -> float:
                        solver.planar_info[edges], solver.weight[edges], pose)
 
 
-def _moved_chi2(graph: PoseGraph, edges: np.ndarray, weight: Array, R: Array, t: Array
-                ) -> float:
-    """Σ wᵢ χ²ᵢ over ``edges`` of ``graph`` at world poses ``(R, t)``; a planar graph's
-    relative edges in ``(x, y, yaw)`` (a fifth of the general path's time: the spread's
+def _moved_chi2(solver: H2OSolver, edges: np.ndarray, R: Array, t: Array) -> float:
+    """Σ wᵢ χ²ᵢ over the solver's ``edges`` at world poses ``(R, t)``; a planar solver's
+    relative edges by :func:`_planar_chi2` (a fifth of the general path's time: the spread's
     check runs inside a callback's budget)."""
-    total = 0.0
-    if graph.planar:
-        rel = edges[graph.kind[edges] == EdgeKind.RELATIVE]
-        total += float(np.sum(weight[rel] * planar_edge_chi2(graph, rel, R, t)))
-        edges = edges[graph.kind[edges] != EdgeKind.RELATIVE]
+    total, weight = 0.0, solver.weight
+    if solver.planar:
+        relative = solver.kind[edges] == EdgeKind.RELATIVE
+        total += _planar_chi2(solver, edges[relative], planar_poses(R, t))
+        edges = edges[~relative]
     if len(edges):
+        graph = solver.graph(copy=False)
         sub = PoseGraph(graph.planar, graph.ids, R, t, graph.kind[edges], graph.a[edges],
                         graph.b[edges], graph.meas_R[edges], graph.meas_t[edges],
                         graph.info[edges])

@@ -14,12 +14,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from h2o_slam.core import geometry as geo
+from h2o_slam.core.condensed import planar_chi2, planar_poses
 from h2o_slam.core.graph import chi2, edge_chi2
 from h2o_slam.core.loop_spread import (
     LoopSolve,
     adjoint,
     closure_error,
-    planar_edge_chi2,
     spread_loop,
 )
 from h2o_slam.core.modes import build_solver, solve_exact
@@ -73,9 +73,15 @@ def test_adjoint_carries_a_right_perturbation_across_a_pose(pose: list[float],
 
 @pytest.mark.parametrize("seed", range(3))
 def test_planar_edge_chi2_is_edge_chi2(seed: int) -> None:
+    """Each edge's χ² from the solver's planar copies (what the spread's and the condensed
+    solve's checks read) is :func:`edge_chi2`'s."""
     g = random_graph(seed, True, n=12, loops=6, noise=0.3)
-    edges = np.arange(g.num_edges)
-    np.testing.assert_allclose(planar_edge_chi2(g, edges, g.R, g.t), edge_chi2(g), rtol=1e-9)
+    solver, _ = build_solver(g, init="input")
+    pose = planar_poses(g.R, g.t)
+    planar = [planar_chi2(solver.a[[e]], solver.b[[e]], solver.planar_meas[[e]],
+                          solver.planar_info[[e]], np.ones(1), pose)
+              for e in range(g.num_edges)]
+    np.testing.assert_allclose(planar, edge_chi2(g), rtol=1e-9)
 
 
 @pytest.mark.parametrize("planar", [True, False])
