@@ -39,8 +39,8 @@ def test_the_summary_leaves_out_rows_skipped_by_design():
     assert robust.target_summary(rows).endswith("met on 1 of 1 rows.")
 
 
-def test_a_fitted_node_row_is_held_to_the_node_rows_targets():
-    assert robust.target(_row(robust.NODE_FITTED, max_ms=10.5)).startswith("missed: callbacks")
+def test_a_default_model_node_row_is_held_to_the_node_rows_targets():
+    assert robust.target(_row(robust.NODE_DEFAULTS, max_ms=10.5)).startswith("missed: callbacks")
 
 
 def test_the_fitted_odometry_model_is_the_one_a_graph_was_written_with():
