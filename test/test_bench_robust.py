@@ -63,3 +63,14 @@ def test_the_fitted_odometry_model_is_the_one_a_graph_was_written_with():
     assert fitted["odom_sigma_per_m"] == pytest.approx(0.12)
     assert fitted["odom_yaw_sigma_per_m"] == pytest.approx(0.01)
     assert fitted["odom_yaw_sigma_per_rad"] == pytest.approx(0.03)
+
+
+def test_a_kernel_beats_a_row_only_when_better_on_both_counts_beyond_noise():
+    ours = _row("h2o", ate_m=0.002, chi2_ratio=1.005)
+    both = _row("dcs", ate_m=0.0002, chi2_ratio=1.00001)
+    one = _row("cauchy", ate_m=0.0001, chi2_ratio=1.2)
+    noise = _row("gnc", ate_m=0.0015, chi2_ratio=1.00495)
+    assert robust.beaten_by(ours, [ours, both, one, noise]) == ["dcs"]
+    assert robust.beaten_by(ours, [ours, one, noise]) == []
+    lines = robust.kernel_summary([ours, both, one])
+    assert lines[0].endswith(": 1 of 1.") and "beaten by dcs" in lines[1]
