@@ -570,9 +570,14 @@ def _settle(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, iterations
         if place is None:
             break
         w[place] = 0.0
-        vetoed[place] = True
         solver.set_weights(w)
         converged = _tls_rounds(solver, w, free, c2, iterations, history, solve_first=True)
+        # A place is where the closures' ends are, not which of them are wrong: a true
+        # closure of the same revisit as a consistent false group fits the map built
+        # without the place and may come back; the members that do not fit stay out
+        # (intel with 100 grouped false closures: two true closures beside a group of ten
+        # stayed out, χ² 1.0046 times the optimum).
+        vetoed[place] = innovation_chi2(solver, place) > c2[place]
     if len(history) > start:  # moves were tried on capped solves: finish the last one
         converged = _tls_rounds(solver, w, free, c2, iterations, history, solve_first=True)
     return converged
