@@ -575,10 +575,14 @@ def _settle(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, iterations
         converged = _tls_rounds(solver, w, free, c2, iterations, history, solve_first=True)
         # A place is where the closures' ends are, not which of them are wrong: a true
         # closure of the same revisit as a consistent false group fits the map built
-        # without the place and may come back; the members that do not fit stay out
-        # (intel with 100 grouped false closures: two true closures beside a group of ten
-        # stayed out, χ² 1.0046 times the optimum).
-        vetoed[place] = innovation_chi2(solver, place) > c2[place]
+        # without the place as an ordinary inlier does and may come back (intel with 100
+        # grouped false closures: two true closures at 0.001 c̄² stayed out beside a group
+        # of ten, χ² 1.0046 times the optimum). Members of a place found incompatible are
+        # suspect, so the bar is the inliers' RELEASE_TAIL quantile, not c̄²: the false
+        # members there sat at 0.5-3.9 c̄², and at c̄² two of them came back on the node's
+        # graph.
+        bar = c2[place] * release_ratio(solver.p, probability)
+        vetoed[place] = innovation_chi2(solver, place) > bar
     if len(history) > start:  # moves were tried on capped solves: finish the last one
         converged = _tls_rounds(solver, w, free, c2, iterations, history, solve_first=True)
     return converged
@@ -660,6 +664,17 @@ def _incompatible_place(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array
 
 #: Largest place (closures) whose joint compatibility is tested.
 MAX_PLACE = 32
+
+#: A member of a place the joint compatibility test dropped comes back only with an
+#: innovation within this upper-tail quantile of χ² (an ordinary inlier's, 0.99).
+RELEASE_TAIL = 0.01
+
+
+def release_ratio(dof: int, probability: float) -> float:
+    """The release bar of a dropped place's members as a share of ``c̄²``: the χ² quantile
+    at :data:`RELEASE_TAIL` over the one at the inlier ``probability`` (0.37 for a planar
+    closure at the default 0.999999)."""
+    return float(chdtri(dof, RELEASE_TAIL) / chdtri(dof, 1.0 - probability))
 
 
 #: Gauss–Newton iterations a trial move gets before its TLS cost is compared (a move kept
