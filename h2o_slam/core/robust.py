@@ -558,8 +558,8 @@ def _settle(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, iterations
 
     Last, a place whose closures are jointly incompatible with the map built without them
     (:func:`_incompatible_place`) is dropped whatever the TLS cost says, and its closures
-    that do not fit the map built without it stay out of this solve's re-admissions; the
-    moves then run again.
+    stay out of this solve's re-admissions unless one fits the map built without it as an
+    ordinary inlier (:func:`release_ratio`); the moves then run again.
     """
     converged = _tls_rounds(solver, w, free, c2, iterations, history)
     start = len(history)
