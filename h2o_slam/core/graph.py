@@ -114,6 +114,17 @@ class PoseGraph:
         out.R, out.t = np.array(R, dtype=float), np.array(t, dtype=float)
         return out
 
+    def with_edges(self, kind: int, a: np.ndarray, b: np.ndarray, meas_R: Array, meas_t: Array,
+                   info: Array) -> PoseGraph:
+        """A new graph (:func:`make_graph`) with edges of one ``kind`` appended after this
+        graph's, one row of ``a``, ``b``, ``meas_R``, ``meas_t`` and ``info`` each."""
+        return make_graph(
+            self.planar, self.ids, self.R, self.t,
+            np.concatenate([self.kind, np.full(len(a), kind, np.int8)]),
+            np.concatenate([self.a, a]), np.concatenate([self.b, b]),
+            np.concatenate([self.meas_R, meas_R]), np.concatenate([self.meas_t, meas_t]),
+            np.concatenate([self.info, info]))
+
 
 def make_graph(
     planar: bool,

@@ -27,7 +27,7 @@ import numpy as np
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.errors import InputError
-from h2o_slam.core.graph import EdgeKind, PoseGraph, make_graph
+from h2o_slam.core.graph import EdgeKind, PoseGraph
 from h2o_slam.core.robust import odometry_edges
 
 OUTLIER_KINDS = ("random", "local", "random_grouped", "local_grouped")
@@ -71,13 +71,7 @@ def plant_outliers(
     meas_R, meas_t = _false_measurements(rng, graph.planar, groups, span_m)
     group = np.arange(count) // size
     info = np.broadcast_to(_loop_information(graph), (count, 6, 6))
-    out = make_graph(
-        graph.planar, graph.ids, graph.R, graph.t,
-        np.concatenate([graph.kind, np.full(count, EdgeKind.RELATIVE, np.int8)]),
-        np.concatenate([graph.a, a]), np.concatenate([graph.b, b]),
-        np.concatenate([graph.meas_R, meas_R[group]]),
-        np.concatenate([graph.meas_t, meas_t[group]]),
-        np.concatenate([graph.info, info]))
+    out = graph.with_edges(EdgeKind.RELATIVE, a, b, meas_R[group], meas_t[group], info)
     return Planted(out, np.arange(out.num_edges) >= graph.num_edges)
 
 

@@ -379,15 +379,8 @@ def add_gps(
         (len(nodes), len(axes)))
     info = np.zeros((len(nodes), 6, 6))
     info[np.ix_(np.arange(len(nodes)), axes, axes)] = np.eye(len(axes)) / sigma_m**2
-    kind = np.concatenate([graph.kind, np.full(len(nodes), EdgeKind.POSITION, np.int8)])
-    return make_graph(
-        graph.planar, graph.ids, graph.R, graph.t, kind,
-        np.concatenate([graph.a, np.full(len(nodes), EARTH)]),
-        np.concatenate([graph.b, nodes]),
-        np.concatenate([graph.meas_R, np.broadcast_to(np.eye(3), (len(nodes), 3, 3))]),
-        np.concatenate([graph.meas_t, meas_t]),
-        np.concatenate([graph.info, info]),
-    )
+    return graph.with_edges(EdgeKind.POSITION, np.full(len(nodes), EARTH), nodes,
+                            np.broadcast_to(np.eye(3), (len(nodes), 3, 3)), meas_t, info)
 
 
 def truth_path(out: Path) -> Path:

@@ -271,14 +271,8 @@ def _with_false_group(graph: PoseGraph, optimum, closure: int, offset_m: float =
     b = np.arange(graph.b[closure] - 5, graph.b[closure] + 5)
     meas_R, meas_t = geo.between(optimum.R[a], optimum.t[a], optimum.R[b], optimum.t[b])
     meas_t = meas_t + np.array([offset_m, 0.0, 0.0])
-    k = len(a)
-    return make_graph(graph.planar, graph.ids, graph.R, graph.t,
-                      np.concatenate([graph.kind, np.full(k, EdgeKind.RELATIVE, np.int8)]),
-                      np.concatenate([graph.a, a]), np.concatenate([graph.b, b]),
-                      np.concatenate([graph.meas_R, meas_R]),
-                      np.concatenate([graph.meas_t, meas_t]),
-                      np.concatenate([graph.info, np.repeat(graph.info[closure:closure + 1], k,
-                                                            axis=0)]))
+    info = np.repeat(graph.info[closure:closure + 1], len(a), axis=0)
+    return graph.with_edges(EdgeKind.RELATIVE, a, b, meas_R, meas_t, info)
 
 
 def test_true_closures_of_a_dropped_place_that_fit_the_map_come_back():
