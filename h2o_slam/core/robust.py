@@ -351,6 +351,8 @@ def converge_robust(
         _polish(solver, outcome, start, iterations)
     if regraduate and weights is not None:
         outcome = _fresh_if_lower(solver, iterations, trusted, cfg, restart, outcome, start)
+    if restart is not None:
+        _restarted_if_lower(solver, outcome, restart, iterations)
     return outcome
 
 
@@ -423,6 +425,25 @@ def _polish(solver: H2OSolver, outcome: RobustOutcome, start: tuple[Array, Array
         outcome.converged = converged
     else:
         solver.tree.R[:], solver.tree.t[:] = bent
+
+
+def _restarted_if_lower(solver: H2OSolver, outcome: RobustOutcome, restart: Restart,
+                        iterations: int) -> None:
+    """The final decisions solved again from the restart of these decisions (LAGO of the
+    kept edges, planar; chordal, 3-D), kept if χ² ends lower. Decisions made along a
+    graduation can leave least squares converged in a basin of their own that the same
+    decisions from a cold start avoid: intel with 10 grouped false closures as the node
+    builds it, every decision right, converged at χ² 171.18 where LAGO of the same
+    decisions converges to 49.73 (the maps 25 m apart at the farthest pose)."""
+    here = (solver.tree.R.copy(), solver.tree.t.copy())
+    current = float(solver_residuals(solver) @ outcome.weights)
+    _start_at(solver, outcome.weights, restart)
+    history, converged = converge_exact(solver, iterations)
+    if converged and history[-1] < current * (1.0 - 1e-9):
+        outcome.history.extend(history[1:])
+        outcome.converged = True
+    else:
+        solver.tree.R[:], solver.tree.t[:] = here
 
 
 def _decide(solver: H2OSolver, iterations: int, trusted: np.ndarray, cfg: RobustConfig,

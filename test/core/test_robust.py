@@ -22,6 +22,7 @@ from h2o_slam.core.robust import (
     RobustConfig,
     RobustOutcome,
     _polish,
+    _restarted_if_lower,
     closure_noise_scale,
     converge_robust,
     deletion_chi2,
@@ -30,6 +31,7 @@ from h2o_slam.core.robust import (
     group_chi2,
     initial_mu,
     innovation_chi2,
+    lago_restart,
     odometry_edges,
     solver_residuals,
     tail_thresholds,
@@ -464,6 +466,48 @@ def test_a_polish_that_ends_higher_leaves_the_map_as_it_was():
     outcome = RobustOutcome(np.ones(graph.num_edges), history[-1:], 0, False)
     _polish(solver, outcome, start, 1)  # one iteration from metres off: higher
     assert not outcome.converged and outcome.history == history[-1:]
+    np.testing.assert_array_equal(solver.world_poses()[1], there)
+
+
+def _local_minimum(graph: PoseGraph, seed: int = 0) -> tuple[object, float]:
+    """A solver converged by Gauss–Newton from headings drawn at random: a local minimum
+    thousands of times the optimum's χ²; returns it and that χ²."""
+    solver, _ = build_solver(graph, init="tree", regularizer=False)
+    R, t = solver.world_poses()
+    rng = np.random.default_rng(seed)
+    turn = geo.yaw_to_matrix(rng.uniform(-np.pi, np.pi, len(R)))
+    solver.tree.set_world_poses(turn @ R, t + rng.normal(0.0, 5.0, t.shape))
+    history, converged = converge_exact(solver, 200)
+    assert converged
+    return solver, history[-1]
+
+
+def test_a_converged_answer_in_a_worse_basin_is_solved_again_from_lago():
+    graph = manhattan(200, seed=1).graph
+    optimum = solve_exact(graph)
+    best = chi2(graph, optimum.R, optimum.t)
+    solver, stuck = _local_minimum(graph)
+    assert stuck > 100 * best
+    outcome = RobustOutcome(np.ones(graph.num_edges), [stuck], 0, True)
+    _restarted_if_lower(solver, outcome, lago_restart(graph), 100)
+    assert outcome.converged and outcome.history[-1] <= best * (1 + 1e-9)
+    np.testing.assert_allclose(solver.world_poses()[1], optimum.t, atol=1e-6)
+
+
+def test_a_restart_that_ends_higher_leaves_the_map_as_it_was():
+    graph = manhattan(200, seed=1).graph
+    solver, _ = build_solver(graph, init="tree", regularizer=False)
+    history, _ = converge_exact(solver, 100)
+    there = solver.world_poses()[1].copy()
+    stuck, _ = _local_minimum(graph)
+    far = stuck.world_poses()
+
+    def restart(weights):
+        return far
+
+    outcome = RobustOutcome(np.ones(graph.num_edges), history[-1:], 0, True)
+    _restarted_if_lower(solver, outcome, restart, 100)
+    assert outcome.history == history[-1:]
     np.testing.assert_array_equal(solver.world_poses()[1], there)
 
 
