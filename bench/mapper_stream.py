@@ -3,9 +3,10 @@
 :func:`stream_graph` drives :class:`h2o_slam.ros.mapper.Mapper` (``h2o_node`` without ROS)
 with the graph's odometry chain as odometry samples one second apart (each one a keyframe,
 so keyframe ``k`` is node ``k``), its loop closures by node id at the arrival of their newer
-end, and its GPS fixes by stamp, one budgeted step per arriving pose, as the node's
-odometry callback runs it, with :data:`GAP_S` between callbacks, as an executor waits for
-the next message. Then it idles (budgeted steps, as the node's idle timer) and solves
+end, and its GPS fixes by stamp. Each message is its own callback ending in one budgeted
+step, as ``h2o_node`` handles it (the odometry sample, then each closure or fix that
+arrives with it), with :data:`GAP_S` between callbacks, as an executor waits for the next
+message. Then it idles (budgeted steps, as the node's idle timer) and solves
 exactly (``~/exact_solve``). The mapper's odometry noise model is its own
 (``MapperConfig``), so its map is compared with its own map of the outlier-free graph.
 """
@@ -13,6 +14,7 @@ exactly (``~/exact_solve``). The mapper's odometry noise model is its own
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,8 +47,8 @@ class StreamResult:
         R, t: world poses of the graph's nodes.
         weights: the mapper's final weight of each of the graph's edges (0 for a closure it
             refused outright).
-        callback_ms: wall time of each pose's callback (odometry, its closures and fixes,
-            one budgeted step).
+        callback_ms: wall time of each message's callback (an odometry sample, a closure
+            or a fix, and one budgeted step).
         seconds: wall time of the whole stream, idle and exact solve.
     """
 
@@ -113,14 +115,12 @@ def stream_graph(graph: PoseGraph, budget_ms: float = 5.0, idle_s: float = 1.0,
     begin = time.perf_counter()
     try:
         for k, edges in enumerate(arrivals(graph)):
-            start = time.perf_counter()
-            mapper.add_odometry(START_NS + k * NS, poses[k])
+            times.append(_callback(mapper, lambda k=k: mapper.add_odometry(
+                START_NS + k * NS, poses[k])))
             for e in edges.tolist():
                 if not odometry[e]:
-                    mapped[e] = _add_edge(mapper, graph, e)
-            mapper.callback_step(start)  # as h2o_node: the callback as a whole in budget
-            times.append(1e3 * (time.perf_counter() - start))
-            time.sleep(GAP_S)
+                    times.append(_callback(mapper, lambda e=e: mapped.__setitem__(
+                        e, _add_edge(mapper, graph, e))))
         until = time.perf_counter() + idle_s
         while time.perf_counter() < until:
             mapper.step(mapper.config.budget_s)
@@ -131,6 +131,18 @@ def stream_graph(graph: PoseGraph, budget_ms: float = 5.0, idle_s: float = 1.0,
     finally:
         mapper.close()
     return StreamResult(R, t, weights, np.array(times), seconds)
+
+
+def _callback(mapper: Mapper, handle: Callable[[], object]) -> float:
+    """One message's callback as ``h2o_node`` runs it: ``handle`` it, then one step with
+    what is left of the budget (the callback as a whole in budget); its wall time (ms),
+    after which the executor waits :data:`GAP_S` for the next message."""
+    start = time.perf_counter()
+    handle()
+    mapper.callback_step(start)
+    elapsed_ms = 1e3 * (time.perf_counter() - start)
+    time.sleep(GAP_S)
+    return elapsed_ms
 
 
 def _add_edge(mapper: Mapper, graph: PoseGraph, e: int) -> int:

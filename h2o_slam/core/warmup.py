@@ -110,6 +110,7 @@ def _run_every_path() -> None:
         converge_exact(solver, 2)  # the sparse factorization's first uses
     spanning_parents(2, np.array([0]), np.array([1]))
     _condensed_loop()
+    _robust_solve()
 
 
 def _condensed_loop() -> None:
@@ -122,6 +123,21 @@ def _condensed_loop() -> None:
     solve_loop(pose, 0, inc, cov, closure, 2, 1e-6, lambda: False)
     Reduced(closure.a, closure.b, closure.meas, closure.info, np.array([8])).rotations_first(
         pose)
+
+
+def _robust_solve() -> None:
+    """A robust solve's first use imports scipy.special and scipy.sparse.csgraph (the
+    module defers them to keep every command's start short) and runs LAGO's kernels: 0.15 s
+    that the first inline solve of a node paid inside one callback."""
+    from scipy.sparse.csgraph import connected_components
+
+    from h2o_slam.core.robust import chdtri, lago_restart
+    from h2o_slam.io.synthetic import manhattan
+
+    chdtri(np.array([3.0]), 0.01)
+    connected_components(np.eye(2), directed=False)
+    graph = manhattan(12, seed=0).graph
+    lago_restart(graph)(np.ones(graph.num_edges))
 
 
 def byte_compile() -> None:
