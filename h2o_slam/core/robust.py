@@ -42,7 +42,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from h2o_slam.core import geometry as geo
-from h2o_slam.core.exact import ExactSystem, converge_exact
+from h2o_slam.core.exact import ExactSystem, converge_exact, settled
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, edge_chi2, odometry_chain
 from h2o_slam.core.jacobians import endpoint_jacobians
@@ -439,7 +439,9 @@ def _restarted_if_lower(solver: H2OSolver, outcome: RobustOutcome, restart: Rest
     current = float(solver_residuals(solver) @ outcome.weights)
     _start_at(solver, outcome.weights, restart)
     history, converged = converge_exact(solver, iterations)
-    if converged and history[-1] < current * (1.0 - 1e-9):
+    # Lower by more than the solve's own tolerance: a loosely converged answer is not
+    # replaced by the restart's few more iterations toward the same optimum.
+    if converged and not settled(current, history[-1], solver.config.exact_tolerance):
         outcome.history.extend(history[1:])
         outcome.converged = True
     else:
