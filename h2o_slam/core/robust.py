@@ -23,7 +23,10 @@ GNC ends in a local minimum of the TLS cost; local moves that must lower it foll
 place whose closures are jointly incompatible with the map built without them is dropped
 whatever the TLS cost says (Neira & Tardós's joint compatibility test,
 :func:`_incompatible_place`): a weakly tied map can bend to fit a group of consistent
-false closures for less than the cost of leaving them out.
+false closures for less than the cost of leaving them out. The final decisions are then
+solved by least squares once more from a start that does not depend on the path the
+decisions took (LAGO of the kept edges on planar graphs, the chordal initialization in
+3-D), and that answer is kept where its χ² is lower (:func:`_restarted_if_lower`).
 
 The weights end binary; :func:`edge_states` names them for reports and diagnostics
 (:class:`EdgeState`). Weights live in the solver's edge table
