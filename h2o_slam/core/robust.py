@@ -354,7 +354,10 @@ def converge_robust(
         _polish(solver, outcome, start, iterations)
     if regraduate and weights is not None:
         outcome = _fresh_if_lower(solver, iterations, trusted, cfg, restart, outcome, start)
-    if restart is not None:
+    # With every edge kept the answer is least squares of the whole graph, which a batch
+    # solve already starts from LAGO (planar) or chordal (3-D, its default start); a
+    # restart there would only repeat it.
+    if restart is not None and np.any(outcome.weights < 1.0):
         _restarted_if_lower(solver, outcome, restart, iterations)
     return outcome
 
