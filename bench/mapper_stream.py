@@ -49,6 +49,12 @@ class StreamResult:
             refused outright).
         callback_ms: wall time of each message's callback (an odometry sample, a closure
             or a fix, and one budgeted step).
+        callback_cpu_ms: the CPU time the callbacks' thread spent in each (the kernel
+            leaves out time it waited for a core, and with paravirtual steal accounting,
+            Linux on KVM, time the host ran other guests on the machine's virtual CPU).
+        callback_stolen: whether the host took CPU time from this machine during each
+            callback (``/proc/stat``'s steal counter advanced; its unit is 10 ms, so a
+            short theft may not show). All False where there is no such counter.
         seconds: wall time of the whole stream, idle and exact solve.
     """
 
@@ -56,6 +62,8 @@ class StreamResult:
     t: np.ndarray
     weights: np.ndarray
     callback_ms: np.ndarray
+    callback_cpu_ms: np.ndarray
+    callback_stolen: np.ndarray
     seconds: float
 
 
@@ -111,7 +119,7 @@ def stream_graph(graph: PoseGraph, budget_ms: float = 5.0, idle_s: float = 1.0,
                           **(odometry_model or {}))
     mapper = Mapper(config)
     mapped = np.full(graph.num_edges, -1)
-    times = []
+    times: list[tuple[float, float, bool]] = []
     begin = time.perf_counter()
     try:
         for k, edges in enumerate(arrivals(graph)):
@@ -130,19 +138,36 @@ def stream_graph(graph: PoseGraph, budget_ms: float = 5.0, idle_s: float = 1.0,
         R, t = mapper.h2o.solver.world_poses()
     finally:
         mapper.close()
-    return StreamResult(R, t, weights, np.array(times), seconds)
+    wall, cpu, stolen = (np.array(column) for column in zip(*times, strict=True))
+    return StreamResult(R, t, weights, wall, cpu, stolen.astype(bool), seconds)
 
 
-def _callback(mapper: Mapper, handle: Callable[[], object]) -> float:
+def host_steal_ticks() -> int:
+    """The machine's stolen CPU time so far (``/proc/stat``, in 10 ms ticks): time the
+    hypervisor gave this virtual machine's CPUs to others. 0 where there is none."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+    except OSError:
+        return 0
+    return int(fields[8]) if len(fields) > 8 and fields[0] == "cpu" else 0
+
+
+def _callback(mapper: Mapper, handle: Callable[[], object]) -> tuple[float, float, bool]:
     """One message's callback as ``h2o_node`` runs it: ``handle`` it, then one step with
-    what is left of the budget (the callback as a whole in budget); its wall time (ms),
-    after which the executor waits :data:`GAP_S` for the next message."""
+    what is left of the budget (the callback as a whole in budget); its wall and CPU time
+    (ms) and whether the host stole time meanwhile, after which the executor waits
+    :data:`GAP_S` for the next message."""
+    steal = host_steal_ticks()
+    cpu = time.thread_time()
     start = time.perf_counter()
     handle()
     mapper.callback_step(start)
     elapsed_ms = 1e3 * (time.perf_counter() - start)
+    cpu_ms = 1e3 * (time.thread_time() - cpu)
+    stolen = host_steal_ticks() > steal
     time.sleep(GAP_S)
-    return elapsed_ms
+    return elapsed_ms, cpu_ms, stolen
 
 
 def _add_edge(mapper: Mapper, graph: PoseGraph, e: int) -> int:

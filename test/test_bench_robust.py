@@ -27,7 +27,7 @@ def _row(solver: str, status: str = "ok", **scores: float) -> object:
 def test_a_row_meets_the_target_on_its_map_and_a_node_row_on_its_callbacks_too():
     assert robust.target(_row("h2o", max_ms=50.0)) == "met"
     assert robust.target(_row("node")) == "met"
-    assert robust.target(_row("node", max_ms=10.5)).startswith("missed: callbacks")
+    assert robust.target(_row("node", max_ms=10.5, over=1)).startswith("missed: callbacks")
     assert robust.target(_row("h2o", ate_m=0.06)) == "missed: ATE 0.06 m"
     assert robust.target(_row("h2o", "timeout (300 s)")) == "missed (timeout (300 s))"
     assert robust.target(_row("gnc", ate_m=9.0)) == ""
@@ -40,7 +40,33 @@ def test_the_summary_leaves_out_rows_skipped_by_design():
 
 
 def test_a_default_model_node_row_is_held_to_the_node_rows_targets():
-    assert robust.target(_row(robust.NODE_DEFAULTS, max_ms=10.5)).startswith("missed: callbacks")
+    assert robust.target(_row(robust.NODE_DEFAULTS, max_ms=10.5, over=1)).startswith(
+        "missed: callbacks")
+
+
+def test_only_callbacks_the_host_took_time_from_may_exceed_twice_the_budget():
+    row = _row("node", max_ms=30.0, over=3, over_host=3)
+    assert robust.target(row) == "met"
+    assert robust.target(_row("node", max_ms=30.0, over=3, over_host=2)) == (
+        "missed: callbacks p99 4.00 ms, 1 over 10 ms")
+    assert robust.target(_row("node", p99_ms=5.5, over=0)).startswith("missed: callbacks p99")
+
+
+def test_a_stream_reports_each_callbacks_wall_and_cpu_time_and_the_hosts_steal():
+    mapper_stream = importlib.import_module("mapper_stream")
+    n = 30
+    graph = PoseGraph(True, np.arange(n), np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3)),
+                      np.full(n - 1, EdgeKind.RELATIVE, np.int8), np.arange(n - 1),
+                      np.arange(1, n), np.tile(np.eye(3), (n - 1, 1, 1)),
+                      np.tile([1.0, 0.0, 0.0], (n - 1, 1)), np.tile(np.eye(6), (n - 1, 1, 1)))
+    out = mapper_stream.stream_graph(graph, 5.0, idle_s=0.0, background="inline")
+    assert out.callback_ms.shape == out.callback_cpu_ms.shape == out.callback_stolen.shape
+    assert len(out.callback_ms) == n
+    assert out.callback_stolen.dtype == bool
+    # CPU time is the thread's own: never (beyond the clocks' granularity) above wall time.
+    assert np.all(out.callback_cpu_ms <= out.callback_ms + 0.5)
+    assert np.all(out.callback_cpu_ms >= 0.0)
+    assert mapper_stream.host_steal_ticks() >= 0
 
 
 def test_the_fitted_odometry_model_is_the_one_a_graph_was_written_with():
