@@ -48,10 +48,12 @@ from its spanning tree of odometry edges; odometry never gets a kernel):
   map's): a per-metre model is close to the file's information, not equal to it. The
   callback column gives the p99 and the largest callback time, the most CPU time one
   callback's thread spent, and how many callbacks took over 10 ms, with in parentheses
-  those of them that spent at most 10 ms of CPU while the hypervisor took CPU time from the
-  machine (``/proc/stat`` steal: on a shared virtual machine the host runs other guests on
-  its virtual CPUs for ms at a time, which no code inside can prevent). Target: p99 ≤ 5 ms,
-  and every callback over 10 ms one of those. Time: the whole stream.
+  those of them the hypervisor took CPU time from (:func:`mapper_stream.stolen_during`: on
+  a shared virtual machine the host runs other work on its virtual CPUs for ms at a time,
+  which no code inside can prevent; the guest may count much of the pause as its thread's
+  CPU time, so the CPU column does not exclude it: an odometry sample's callback that
+  takes 0.5 ms took 28 ms, 19.4 ms of it counted as CPU, while steal advanced). Target:
+  p99 ≤ 5 ms, and every callback over 10 ms one of those. Time: the whole stream.
 - ``node_default`` (opt-in): the same with the mapper's default odometry model, as a robot
   whose ``odom_*`` were never set runs: it is 2-5 times tighter than some graphs' odometry
   (manhattan: σ 0.05 against 0.11 m per metre), so it shows what a mis-set model costs.
@@ -261,7 +263,7 @@ class Outcome:
     max_ms: float = float("nan")
     max_cpu_ms: float = float("nan")  # the most CPU time one callback's thread spent
     over: int = 0  # callbacks over 2× the budget
-    over_host: int = 0  # of those, ones within 2× the budget in CPU while the host stole time
+    over_host: int = 0  # of those, ones the host stole time from (mapper_stream.stolen_during)
 
 
 def solve_node(graph: PoseGraph, defaults: bool = False) -> Outcome:
@@ -274,7 +276,7 @@ def solve_node(graph: PoseGraph, defaults: bool = False) -> Outcome:
     out = stream_graph(graph, NODE_BUDGET_MS,
                        odometry_model=None if defaults else fitted_odometry(graph))
     over = out.callback_ms > 2 * NODE_BUDGET_MS
-    host = over & out.callback_stolen & (out.callback_cpu_ms <= 2 * NODE_BUDGET_MS)
+    host = over & out.callback_stolen
     return Outcome("ok", out.R, out.t, out.weights, out.seconds,
                    float(np.percentile(out.callback_ms, 99)), float(out.callback_ms.max()),
                    float(out.callback_cpu_ms.max()), int(np.count_nonzero(over)),

@@ -52,6 +52,21 @@ def test_only_callbacks_the_host_took_time_from_may_exceed_twice_the_budget():
     assert robust.target(_row("node", p99_ms=5.5, over=0)).startswith("missed: callbacks p99")
 
 
+def test_a_callback_is_stolen_from_when_the_counter_moves_by_30_ms_after_its_end():
+    mapper_stream = importlib.import_module("mapper_stream")
+    start = np.array([0.0, 0.005, 0.010, 0.050])
+    end = start + 0.002
+    steal = np.array([7, 7, 7, 8])
+    # The counter moved between the readings at 0.010 and 0.050. The first three windows
+    # (to 30 ms after each end) close before 0.050, whose reading is the first one after
+    # them; the last one's closing reading is the final one.
+    stolen = mapper_stream.stolen_during(start, end, steal, final=8)
+    assert stolen.tolist() == [True, True, True, False]
+    assert mapper_stream.stolen_during(start, end, steal, final=9).tolist() == [
+        True, True, True, True]
+    assert not mapper_stream.stolen_during(start, end, np.full(4, 7), final=7).any()
+
+
 def test_a_stream_reports_each_callbacks_wall_and_cpu_time_and_the_hosts_steal():
     mapper_stream = importlib.import_module("mapper_stream")
     n = 30
