@@ -49,9 +49,10 @@ class StreamResult:
             refused outright).
         callback_ms: wall time of each message's callback (an odometry sample, a closure
             or a fix, and one budgeted step).
-        callback_cpu_ms: the CPU time the callbacks' thread spent in each (the kernel
-            leaves out time it waited for a core, and with paravirtual steal accounting,
-            Linux on KVM, time the host ran other guests on the machine's virtual CPU).
+        callback_cpu_ms: the CPU time the callbacks' thread spent in each (without time
+            it waited for a core; a pause of the virtual machine's host may still be
+            charged to it, in part or whole: measured, 19.4 ms of a 28 ms callback whose
+            work takes 0.5 ms).
         callback_stolen: whether the host took CPU time from this machine during each
             callback (:func:`stolen_during`). All False where there is no steal counter.
         seconds: wall time of the whole stream, idle and exact solve.
