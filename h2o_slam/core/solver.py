@@ -447,8 +447,7 @@ class H2OSolver:
     def _end_pose(self, chain: np.ndarray) -> tuple[Array, Array]:
         if len(chain) == 0:
             return np.eye(3), np.zeros(3)
-        R, x = self.tree.chain_poses(chain)
-        return R[-1], x[-1]
+        return self.tree.chain_end(chain)
 
     def _regularizer_without(self, edge: int, domain: np.ndarray) -> Array:
         """``B_c``: the regularizer blocks of ``domain`` without ``edge``'s own contribution."""

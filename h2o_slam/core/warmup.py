@@ -106,6 +106,7 @@ def _run_every_path() -> None:
         tree = PoseTree.from_parents(solver.tree.parent[: solver.num_nodes],
                                      *solver.world_poses())
         tree.tops()
+        tree.top(tree.n - 1)
         tree.world_pose(tree.n - 1)
         converge_exact(solver, 2)  # the sparse factorization's first uses
     spanning_parents(2, np.array([0]), np.array([1]))

@@ -260,8 +260,11 @@ class Keyframes:
     chain_cov: list[Array] = field(default_factory=list)
     # Running sums behind :meth:`path_covariance`, extended on demand: entry k sums the
     # increments 1..k as W Σ Wᵀ, and counts the chain breaks among them.
+    # Room for more entries than ``_done`` (capacity doubling): appending by concatenation
+    # copied every sum at each loop closure (0.3 ms per closure on city10000's 10,000 nodes).
     _sums: Array = field(default_factory=lambda: np.zeros((1, 3, 3)), repr=False)
     _breaks: Array = field(default_factory=lambda: np.zeros(1, dtype=np.int64), repr=False)
+    _done: int = field(default=1, repr=False)
 
     def nearest(self, stamp_ns: int) -> tuple[int, float]:
         """Index of the keyframe nearest in time, and the gap in seconds."""
@@ -290,9 +293,9 @@ class Keyframes:
         return carry @ (self._sums[hi] - self._sums[lo]) @ carry.T
 
     def _extend(self) -> None:
-        done, n = len(self._sums), len(self.chain_cov)
+        done, n = self._done, len(self.chain_cov)
         if done > n:  # the lists were replaced (a load): start over
-            self._sums, self._breaks, done = self._sums[:1], self._breaks[:1], 1
+            done = 1
         if done >= n:
             return
         cov = np.asarray(self.chain_cov[done:n], dtype=float).reshape(-1, 3, 3)
@@ -303,8 +306,14 @@ class Keyframes:
         w[:, 0, 0], w[:, 0, 1], w[:, 1, 0], w[:, 1, 1] = c, -s, s, c
         w[:, 0, 2], w[:, 1, 2], w[:, 2, 2] = poses[:, 1], -poses[:, 0], 1.0
         terms = np.einsum("kij,kjl,kml->kim", w, np.where(broken[:, None, None], 0.0, cov), w)
-        self._sums = np.concatenate([self._sums, self._sums[-1] + np.cumsum(terms, axis=0)])
-        self._breaks = np.concatenate([self._breaks, self._breaks[-1] + np.cumsum(broken)])
+        if n > len(self._sums):
+            size = max(n, 2 * len(self._sums))
+            self._sums = np.concatenate([self._sums[:done], np.zeros((size - done, 3, 3))])
+            self._breaks = np.concatenate([self._breaks[:done],
+                                           np.zeros(size - done, dtype=np.int64)])
+        self._sums[done:n] = self._sums[done - 1] + np.cumsum(terms, axis=0)
+        self._breaks[done:n] = self._breaks[done - 1] + np.cumsum(broken)
+        self._done = n
 
 
 class Mapper:

@@ -92,3 +92,50 @@ def test_spanning_forest_is_scipys_breadth_first_forest(data):
     np.testing.assert_array_equal(parent, _scipy_forest(n, a, b, roots))
     assert not roots or parent[roots[0]] == EARTH  # later roots may lie in its tree
     assert np.all((parent >= EARTH) & (parent < n))
+
+
+def _ancestry(parent, node):
+    """``node`` and its ancestors up to its top, nearest first (EARTH excluded)."""
+    out = []
+    while node != EARTH:
+        out.append(int(node))
+        node = parent[node]
+    return out
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.data())
+def test_a_path_runs_from_the_lowest_common_ancestor_down_to_each_end(data):
+    """Against the ancestry lists, on forests (several tops) and with the earth as one end."""
+    n = data.draw(st.integers(1, 40))
+    parent = np.array([EARTH if k == 0 or data.draw(st.booleans()) and k % 7 == 0
+                       else data.draw(st.integers(0, k - 1)) for k in range(n)])
+    tree = PoseTree.from_local(parent, np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3)))
+    b = data.draw(st.integers(0, n - 1))
+    a = data.draw(st.sampled_from([EARTH, *range(n)]))
+    up_a = [] if a == EARTH else _ancestry(parent, a)
+    up_b = _ancestry(parent, b)
+    common = [node for node in up_a if node in up_b]
+    root = common[0] if common else EARTH
+    path = tree.path(a, b)
+    assert path.root == root
+    np.testing.assert_array_equal(path.a_chain, up_a[: up_a.index(root)][::-1]
+                                  if root in up_a else up_a[::-1])
+    np.testing.assert_array_equal(path.b_chain, up_b[: up_b.index(root)][::-1]
+                                  if root in up_b else up_b[::-1])
+    assert tree.top(b) == up_b[-1]
+    assert tree.top(b) == tree.tops()[b]
+
+
+def test_a_chains_end_is_the_last_of_its_poses() -> None:
+    """The compiled end pose against the cumulative composition, on a deep random chain."""
+    rng = np.random.default_rng(3)
+    n = 500
+    parent = np.arange(-1, n - 1)
+    tree = PoseTree.from_local(parent, geo.so3_exp(rng.normal(size=(n, 3))),
+                               rng.normal(size=(n, 3)))
+    for chain in (np.arange(n), np.arange(40, 300), np.array([7])):
+        R_all, t_all = tree.chain_poses(chain)
+        R, t = tree.chain_end(chain)
+        np.testing.assert_allclose(R, R_all[-1], atol=1e-10)
+        np.testing.assert_allclose(t, t_all[-1], atol=1e-9)
