@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from h2o_slam.core.capacity import ensure
 from h2o_slam.core.geometry import Array, matrix_to_yaw
 
 
@@ -105,14 +106,11 @@ class EdgeTable:
 
     def _reserve(self, size: int) -> None:
         """Room for ``size`` edges: capacity at least doubles, so appends stay O(1)."""
-        if size <= len(self.kind):
-            return
-        capacity = max(size, 2 * len(self.kind))
+        ensure(self.arrays(), size)
+
+    def arrays(self) -> list[tuple[EdgeTable, str, object]]:
+        """The per-edge arrays as ``(owner, name, fill)`` (:mod:`h2o_slam.core.capacity`)."""
         names = ["kind", "a", "b", "meas_R", "meas_t", "info", "W", "W_unit", "weight"]
         if self.planar:
             names += ["planar_meas", "planar_info", "planar_cov"]
-        for name in names:
-            old = getattr(self, name)
-            grown = np.zeros((capacity, *old.shape[1:]), dtype=old.dtype)
-            grown[: self.m] = old[: self.m]
-            setattr(self, name, grown)
+        return [(self, name, 0) for name in names]

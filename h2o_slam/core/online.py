@@ -35,6 +35,7 @@ import numpy as np
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.blas import BlasLimit
+from h2o_slam.core.capacity import Growable, GrowAhead, ensure
 from h2o_slam.core.condensed import CondensedLoop, Reduced, planar_chi2, planar_poses
 from h2o_slam.core.converge import BACKGROUNDS, Converger, Solution
 from h2o_slam.core.errors import GraphError
@@ -242,6 +243,7 @@ class OnlineH2O:
         # GPS batches: domain size and number of edges.
         self.batch_cost = CostModel((2e-4, 3e-6, 3e-5), (50.0, 5.0))
         self._clock = time.perf_counter
+        self._grow_ahead = GrowAhead()
         #: Tracked 99.5th percentile of a step's end past its planned deadline (seconds), and
         #: the extra time held back for it beyond ``reserve``.
         self._late_q = 0.0
@@ -306,15 +308,20 @@ class OnlineH2O:
         return edge
 
     def _note_odometry(self, node: int, edge: int) -> None:
-        if node >= len(self._odometry_edge):
-            grown = np.full(2 * node + 2, -1, dtype=np.int64)
-            grown[: len(self._odometry_edge)] = self._odometry_edge
-            self._odometry_edge = grown
+        ensure([(self, "_odometry_edge", -1)], node + 1)
         self._odometry_edge[node] = edge
 
     def _grow_priority(self) -> None:
-        if self.solver.num_edges > len(self._priority):
-            self._priority = np.concatenate([self._priority, np.zeros(len(self._priority))])
+        ensure([(self, "_priority", 0.0)], self.solver.num_edges)
+
+    def _growables(self) -> list[Growable]:
+        """Every per-node and per-edge array of the solver and of this object."""
+        s = self.solver
+        n, m = s.num_nodes, s.num_edges
+        nodes = s.node_arrays() + [(self, "_odometry_edge", -1)]
+        edges = s.edge_arrays() + [(self, "_priority", 0.0)]
+        return ([Growable(owner, name, fill, n) for owner, name, fill in nodes]
+                + [Growable(owner, name, fill, m) for owner, name, fill in edges])
 
     def _top(self, node: int) -> int:
         return self.solver.tree.top(node)
@@ -557,6 +564,9 @@ class OnlineH2O:
         # A solution merged just now put back the map without closures newer than it that
         # earlier steps corrected: their corrections again, while time is left.
         self._spread_queued(deadline)
+        if budget_s is not None:
+            # Before the revisits, which would take the time to the deadline.
+            self._grow_ahead.run(self._growables(), deadline, self._clock)
         self.steps += 1
         report.deferred = len(self.pending)
         if self.pending and report.relaxed == 0:

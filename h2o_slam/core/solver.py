@@ -28,6 +28,7 @@ import scipy.sparse as sp
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core import interpolate
+from h2o_slam.core.capacity import ensure
 from h2o_slam.core.compiled import kernel
 from h2o_slam.core.edges import EdgeTable
 from h2o_slam.core.errors import GraphError
@@ -281,12 +282,18 @@ class H2OSolver:
         self._grow_own()
 
     def _grow_own(self) -> None:
-        size = len(self._own_node)
-        if self.num_edges > size:
-            extra = max(self.num_edges, 2 * size) - size
-            self._own_node = np.concatenate([self._own_node, np.full(extra, -1)])
-            self._own_block = np.concatenate(
-                [self._own_block, np.zeros((extra, self.p, self.p))])
+        ensure(self._own_arrays(), self.num_edges)
+
+    def _own_arrays(self) -> list[tuple[H2OSolver, str, object]]:
+        return [(self, "_own_node", -1), (self, "_own_block", 0.0)]
+
+    def node_arrays(self) -> list[tuple[object, str, object]]:
+        """Every per-node array as ``(owner, name, fill)`` (:mod:`h2o_slam.core.capacity`)."""
+        return self.tree.arrays() + self._B_arrays()
+
+    def edge_arrays(self) -> list[tuple[object, str, object]]:
+        """Every per-edge array as ``(owner, name, fill)``."""
+        return self._edges.arrays() + self._own_arrays()
 
     def _contribute(self, edge: int, lin: Linearization) -> None:
         """Add the edge's contribution ``𝔅(JᵀJ)`` at ``lin`` to ``B`` and remember it."""
@@ -303,12 +310,10 @@ class H2OSolver:
             self._own_block[edge] = blocks[0]
 
     def _grow_B(self) -> None:
-        if self.tree.n > len(self.B):
-            extra = len(self.B)
-            self.B = np.concatenate([self.B, np.zeros((extra, self.p, self.p))])
-            self.tree_edge = np.concatenate([self.tree_edge, np.full(extra, -1)])
-            self.tree_edge_forward = np.concatenate(
-                [self.tree_edge_forward, np.ones(extra, dtype=bool)])
+        ensure(self._B_arrays(), self.tree.n)
+
+    def _B_arrays(self) -> list[tuple[H2OSolver, str, object]]:
+        return [(self, "B", 0.0), (self, "tree_edge", -1), (self, "tree_edge_forward", True)]
 
     def _set_tree_edge(self, node: int, edge: int, forward: bool) -> None:
         self.tree_edge[node] = edge

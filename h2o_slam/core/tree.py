@@ -15,6 +15,7 @@ from functools import cached_property
 import numpy as np
 
 from h2o_slam.core import geometry as geo
+from h2o_slam.core.capacity import ensure
 from h2o_slam.core.compiled import kernel
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph
@@ -59,8 +60,7 @@ class PoseTree:
 
     def add_node(self, parent: int, R_local: Array, t_local: Array) -> int:
         """Append a node under ``parent`` (:data:`EARTH` for a new top) and return its index."""
-        if self.n == len(self.parent):
-            self._grow(2 * len(self.parent))
+        ensure(self.arrays(), self.n + 1)
         i = self.n
         self.parent[i] = parent
         self.depth[i] = 1 if parent == EARTH else self.depth[parent] + 1
@@ -126,12 +126,10 @@ class PoseTree:
         self.depth[sub] += shift
         return sub
 
-    def _grow(self, capacity: int) -> None:
-        extra = capacity - len(self.parent)
-        self.parent = np.concatenate([self.parent, np.full(extra, EARTH, dtype=np.int64)])
-        self.depth = np.concatenate([self.depth, np.zeros(extra, dtype=np.int64)])
-        self.R = np.concatenate([self.R, np.tile(np.eye(3), (extra, 1, 1))])
-        self.t = np.concatenate([self.t, np.zeros((extra, 3))])
+    def arrays(self) -> list[tuple[PoseTree, str, object]]:
+        """The per-node arrays as ``(owner, name, fill)`` (:mod:`h2o_slam.core.capacity`)."""
+        return [(self, "parent", EARTH), (self, "depth", 0), (self, "R", np.eye(3)),
+                (self, "t", 0.0)]
 
     @classmethod
     def from_parents(cls, parent: np.ndarray, R_world: Array, t_world: Array) -> PoseTree:
