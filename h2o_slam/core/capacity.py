@@ -17,6 +17,9 @@ from typing import Any
 
 import numpy as np
 
+#: A growable array as ``(owner, attribute name, fill of new rows)``.
+ArrayRef = tuple[Any, str, Any]
+
 
 @dataclass(frozen=True)
 class Growable:
@@ -42,7 +45,7 @@ def grow(owner: Any, name: str, capacity: int, fill: Any) -> int:
     return new.nbytes
 
 
-def ensure(arrays: Iterable[tuple[Any, str, Any]], size: int) -> None:
+def ensure(arrays: Iterable[ArrayRef], size: int) -> None:
     """Room for ``size`` rows in each ``(owner, name, fill)``: those with fewer grow to
     twice the smallest of them (or to ``size``), so that appends stay O(1) on average."""
     short = [item for item in arrays if len(getattr(item[0], item[1])) < size]

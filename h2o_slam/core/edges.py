@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from h2o_slam.core.capacity import ensure
+from h2o_slam.core.capacity import ArrayRef, ensure
 from h2o_slam.core.geometry import Array, matrix_to_yaw
 
 
@@ -108,7 +108,7 @@ class EdgeTable:
         """Room for ``size`` edges: capacity at least doubles, so appends stay O(1)."""
         ensure(self.arrays(), size)
 
-    def arrays(self) -> list[tuple[EdgeTable, str, object]]:
+    def arrays(self) -> list[ArrayRef]:
         """The per-edge arrays as ``(owner, name, fill)`` (:mod:`h2o_slam.core.capacity`)."""
         names = ["kind", "a", "b", "meas_R", "meas_t", "info", "W", "W_unit", "weight"]
         if self.planar:

@@ -28,7 +28,7 @@ import scipy.sparse as sp
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core import interpolate
-from h2o_slam.core.capacity import ensure
+from h2o_slam.core.capacity import ArrayRef, ensure
 from h2o_slam.core.compiled import kernel
 from h2o_slam.core.edges import EdgeTable
 from h2o_slam.core.errors import GraphError
@@ -284,14 +284,14 @@ class H2OSolver:
     def _grow_own(self) -> None:
         ensure(self._own_arrays(), self.num_edges)
 
-    def _own_arrays(self) -> list[tuple[H2OSolver, str, object]]:
+    def _own_arrays(self) -> list[ArrayRef]:
         return [(self, "_own_node", -1), (self, "_own_block", 0.0)]
 
-    def node_arrays(self) -> list[tuple[object, str, object]]:
+    def node_arrays(self) -> list[ArrayRef]:
         """Every per-node array as ``(owner, name, fill)`` (:mod:`h2o_slam.core.capacity`)."""
         return self.tree.arrays() + self._B_arrays()
 
-    def edge_arrays(self) -> list[tuple[object, str, object]]:
+    def edge_arrays(self) -> list[ArrayRef]:
         """Every per-edge array as ``(owner, name, fill)``."""
         return self._edges.arrays() + self._own_arrays()
 
@@ -312,7 +312,7 @@ class H2OSolver:
     def _grow_B(self) -> None:
         ensure(self._B_arrays(), self.tree.n)
 
-    def _B_arrays(self) -> list[tuple[H2OSolver, str, object]]:
+    def _B_arrays(self) -> list[ArrayRef]:
         return [(self, "B", 0.0), (self, "tree_edge", -1), (self, "tree_edge_forward", True)]
 
     def _set_tree_edge(self, node: int, edge: int, forward: bool) -> None:

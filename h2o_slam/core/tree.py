@@ -15,7 +15,7 @@ from functools import cached_property
 import numpy as np
 
 from h2o_slam.core import geometry as geo
-from h2o_slam.core.capacity import ensure
+from h2o_slam.core.capacity import ArrayRef, ensure
 from h2o_slam.core.compiled import kernel
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph
@@ -126,7 +126,7 @@ class PoseTree:
         self.depth[sub] += shift
         return sub
 
-    def arrays(self) -> list[tuple[PoseTree, str, object]]:
+    def arrays(self) -> list[ArrayRef]:
         """The per-node arrays as ``(owner, name, fill)`` (:mod:`h2o_slam.core.capacity`)."""
         return [(self, "parent", EARTH), (self, "depth", 0), (self, "R", np.eye(3)),
                 (self, "t", 0.0)]
