@@ -11,6 +11,7 @@ differ in capacity meanwhile: whoever appends checks each array it writes.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -70,23 +71,41 @@ class GrowAhead:
     def __init__(self) -> None:
         self.rate = self.FIRST_RATE
         self.grown = 0  # arrays grown ahead of need
+        # No array is three quarters full before the rows in use add up to this many: the
+        # step skips building the list of arrays (~0.1 ms) until then.
+        self._next_total = 0
 
-    def run(self, arrays: Iterable[Growable], deadline: float, clock: Callable[[], float]
-            ) -> bool:
+    def due(self, total: int) -> bool:
+        """Whether an array may be three quarters full, ``total`` being the rows in use
+        summed over the kinds of row (nodes + edges): each kind grows by at most that."""
+        return total >= self._next_total
+
+    def run(self, arrays: Iterable[Growable], total: int, deadline: float,
+            clock: Callable[[], float]) -> bool:
         """Grow the arrays that need it, in order, while each fits before ``deadline`` (on
-        ``clock``); False when one did not fit (the rest wait for a later step)."""
+        ``clock``); False when one did not fit (the rest wait for a later step). ``total``
+        is the rows in use as :meth:`due` counts them."""
+        slack = math.inf  # rows to add before the first array is three quarters full
         for item in arrays:
             old = getattr(item.owner, item.name)
-            if 4 * item.used < 3 * len(old):
+            if item.used < _three_quarters(len(old)):
+                slack = min(slack, _three_quarters(len(old)) - item.used)
                 continue
-            nbytes = 2 * old.nbytes
-            if clock() + self.MARGIN * self.rate * nbytes > deadline:
+            if clock() + self.MARGIN * self.rate * 2 * old.nbytes > deadline:
+                self._next_total = 0
                 return False
             start = clock()
-            grow(item.owner, item.name, 2 * len(old), item.fill)
+            nbytes = grow(item.owner, item.name, 2 * len(old), item.fill)
             seconds = clock() - start
             # Quick to rise, slow to fall: one slow copy (fresh pages) is the one to plan for.
             observed = seconds / nbytes
             self.rate = max(observed, 0.9 * self.rate + 0.1 * observed)
             self.grown += 1
+            slack = min(slack, _three_quarters(2 * len(old)) - item.used)
+        self._next_total = total + (0 if slack == math.inf else int(slack))
         return True
+
+
+def _three_quarters(capacity: int) -> int:
+    """The fewest rows in use at which an array of ``capacity`` rows is grown ahead."""
+    return -(-3 * capacity // 4)

@@ -564,9 +564,10 @@ class OnlineH2O:
         # A solution merged just now put back the map without closures newer than it that
         # earlier steps corrected: their corrections again, while time is left.
         self._spread_queued(deadline)
-        if budget_s is not None:
+        total = self.solver.num_nodes + self.solver.num_edges
+        if budget_s is not None and self._grow_ahead.due(total):
             # Before the revisits, which would take the time to the deadline.
-            self._grow_ahead.run(self._growables(), deadline, self._clock)
+            self._grow_ahead.run(self._growables(), total, deadline, self._clock)
         self.steps += 1
         report.deferred = len(self.pending)
         if self.pending and report.relaxed == 0:

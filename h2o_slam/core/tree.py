@@ -188,9 +188,7 @@ class PoseTree:
 
     def world_pose(self, node: int) -> tuple[Array, Array]:
         """World pose of one node, composed down its ancestry (O(depth), compiled)."""
-        R, t = np.empty((3, 3)), np.empty(3)
-        _compose_ancestry(self.parent, self.R, self.t, int(node), R, t)
-        return R, t
+        return self.chain_end(self.path(EARTH, node).b_chain)
 
     def world_poses(self) -> tuple[Array, Array]:
         """World poses of all nodes, composed from the earth down (parents first)."""
@@ -292,23 +290,6 @@ def _compose_chain(R_loc: Array, t_loc: Array, chain: np.ndarray, R: Array, t: A
     t[:] = 0.0
     tmp = np.empty((3, 3))
     for i in chain:
-        geo.add_mulv3(R, t_loc[i], t)
-        geo.mul3_into(R, R_loc[i], tmp)
-        R[:] = tmp
-
-
-@kernel
-def _compose_ancestry(parent: np.ndarray, R_loc: Array, t_loc: Array, node: int, R: Array,
-                      t: Array) -> None:
-    chain = []
-    while node != EARTH:
-        chain.append(node)
-        node = parent[node]
-    R[:] = np.eye(3)
-    t[:] = 0.0
-    tmp = np.empty((3, 3))
-    for k in range(len(chain) - 1, -1, -1):
-        i = chain[k]
         geo.add_mulv3(R, t_loc[i], t)
         geo.mul3_into(R, R_loc[i], tmp)
         R[:] = tmp

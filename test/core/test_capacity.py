@@ -23,7 +23,7 @@ def test_arrays_three_quarters_full_double_and_keep_their_rows() -> None:
     ahead = GrowAhead()
     arrays = [Growable(owner, "full", -1.0, 6), Growable(owner, "half", -1.0, 4),
               Growable(owner, "blocks", np.eye(3), 7)]
-    assert ahead.run(arrays, deadline=1.0, clock=lambda: 0.0)
+    assert ahead.run(arrays, 17, deadline=1.0, clock=lambda: 0.0)
     np.testing.assert_array_equal(owner.full, [*range(8), *[-1.0] * 8])
     np.testing.assert_array_equal(owner.half, np.arange(8.0))  # half full: left alone
     assert owner.blocks.shape == (16, 3, 3)
@@ -36,8 +36,21 @@ def test_an_array_whose_copy_would_pass_the_deadline_waits() -> None:
     ahead = GrowAhead()
     before = owner.full
     # 128 bytes at 1 ns each, twice over, does not fit in 100 ns.
-    assert not ahead.run([Growable(owner, "full", 0.0, 8)], deadline=1e-7, clock=lambda: 0.0)
+    assert not ahead.run([Growable(owner, "full", 0.0, 8)], 8, deadline=1e-7,
+                         clock=lambda: 0.0)
     assert owner.full is before
+    assert ahead.due(8)  # tried again at the next step
+
+
+def test_the_arrays_are_looked_at_again_only_when_one_may_be_three_quarters_full() -> None:
+    owner = _Owner()
+    ahead = GrowAhead()
+    assert ahead.due(0)
+    # 'half' (8 rows, 4 in use) is three quarters full at 6 rows: 2 more; 'full' grows to 16
+    # rows with 6 in use, three quarters full at 12: 6 more.
+    ahead.run([Growable(owner, "full", 0.0, 6), Growable(owner, "half", 0.0, 4)], 10,
+              deadline=1.0, clock=lambda: 0.0)
+    assert not ahead.due(11) and ahead.due(12)
 
 
 def test_owners_arrays_of_different_capacities_all_get_room() -> None:
