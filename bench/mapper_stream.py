@@ -13,6 +13,7 @@ exactly (``~/exact_solve``). The mapper's odometry noise model is its own
 
 from __future__ import annotations
 
+import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -55,6 +56,9 @@ class StreamResult:
             work takes 0.5 ms).
         callback_stolen: whether the host took CPU time from this machine during each
             callback (:func:`stolen_during`). All False where there is no steal counter.
+        callback_off_ms: time of each callback in which its thread neither ran nor waited
+            for a core although it never blocked (:func:`thread_clocks`): the virtual CPU
+            itself was paused by the host. 0 where the kernel keeps no schedstat.
         seconds: wall time of the whole stream, idle and exact solve.
     """
 
@@ -64,6 +68,7 @@ class StreamResult:
     callback_ms: np.ndarray
     callback_cpu_ms: np.ndarray
     callback_stolen: np.ndarray
+    callback_off_ms: np.ndarray
     seconds: float
 
 
@@ -138,9 +143,9 @@ def stream_graph(graph: PoseGraph, budget_ms: float = 5.0, idle_s: float = 1.0,
         R, t = mapper.h2o.solver.world_poses()
     finally:
         mapper.close()
-    start, wall, cpu, steal = (np.array(column) for column in zip(*times, strict=True))
+    start, wall, cpu, steal, off = (np.array(column) for column in zip(*times, strict=True))
     stolen = stolen_during(start, start + 1e-3 * wall, steal, host_steal_ticks())
-    return StreamResult(R, t, weights, wall, cpu, stolen, seconds)
+    return StreamResult(R, t, weights, wall, cpu, stolen, off, seconds)
 
 
 #: Seconds after a callback in which the host's theft of its time may still be counted: the
@@ -173,21 +178,41 @@ def host_steal_ticks() -> int:
     return int(fields[8]) if len(fields) > 8 and fields[0] == "cpu" else 0
 
 
+def thread_clocks() -> tuple[float, float, int]:
+    """The calling thread's time on a CPU and waiting in the run queue (s, from
+    ``/proc/thread-self/schedstat``; 0 where there is none) and its voluntary context
+    switches so far."""
+    try:
+        with open("/proc/thread-self/schedstat") as f:
+            run_ns, wait_ns = (int(x) for x in f.read().split()[:2])
+    except (OSError, ValueError):
+        run_ns = wait_ns = 0
+    return 1e-9 * run_ns, 1e-9 * wait_ns, resource.getrusage(resource.RUSAGE_THREAD).ru_nvcsw
+
+
 def _callback(mapper: Mapper, handle: Callable[[], object]
-              ) -> tuple[float, float, float, int]:
+              ) -> tuple[float, float, float, int, float]:
     """One message's callback as ``h2o_node`` runs it: ``handle`` it, then one step with
     what is left of the budget (the callback as a whole in budget); its start (s), wall and
-    CPU time (ms) and the host's steal counter at its start, after which the executor
-    waits :data:`GAP_S` for the next message."""
+    CPU time (ms), the host's steal counter at its start and the time its thread was off
+    every CPU without blocking (ms; see :attr:`StreamResult.callback_off_ms`), after which
+    the executor waits :data:`GAP_S` for the next message."""
     steal = host_steal_ticks()
+    run, wait, switches = thread_clocks()
     cpu = time.thread_time()
     start = time.perf_counter()
     handle()
     mapper.callback_step(start)
-    elapsed_ms = 1e3 * (time.perf_counter() - start)
+    elapsed = time.perf_counter() - start
     cpu_ms = 1e3 * (time.thread_time() - cpu)
+    run_end, wait_end, switches_end = thread_clocks()
+    # A thread that never blocked was running or waiting for a core all the time, as far
+    # as this kernel knows: the rest is time the host did not run the virtual CPU.
+    off = 0.0
+    if switches_end == switches and run_end > run:
+        off = max(elapsed - (run_end - run) - (wait_end - wait), 0.0)
     time.sleep(GAP_S)
-    return start, elapsed_ms, cpu_ms, steal
+    return start, 1e3 * elapsed, cpu_ms, steal, 1e3 * off
 
 
 def _add_edge(mapper: Mapper, graph: PoseGraph, e: int) -> int:

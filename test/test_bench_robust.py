@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -75,13 +76,29 @@ def test_a_stream_reports_each_callbacks_wall_and_cpu_time_and_the_hosts_steal()
                       np.arange(1, n), np.tile(np.eye(3), (n - 1, 1, 1)),
                       np.tile([1.0, 0.0, 0.0], (n - 1, 1)), np.tile(np.eye(6), (n - 1, 1, 1)))
     out = mapper_stream.stream_graph(graph, 5.0, idle_s=0.0, background="inline")
-    assert out.callback_ms.shape == out.callback_cpu_ms.shape == out.callback_stolen.shape
+    assert (out.callback_ms.shape == out.callback_cpu_ms.shape == out.callback_stolen.shape
+            == out.callback_off_ms.shape)
     assert len(out.callback_ms) == n
     assert out.callback_stolen.dtype == bool
     # CPU time is the thread's own: never (beyond the clocks' granularity) above wall time.
     assert np.all(out.callback_cpu_ms <= out.callback_ms + 0.5)
     assert np.all(out.callback_cpu_ms >= 0.0)
+    assert np.all((out.callback_off_ms >= 0.0) & (out.callback_off_ms <= out.callback_ms))
     assert mapper_stream.host_steal_ticks() >= 0
+
+
+def test_thread_clocks_count_the_threads_cpu_time_and_its_blocking():
+    mapper_stream = importlib.import_module("mapper_stream")
+    run, wait, switches = mapper_stream.thread_clocks()
+    if run == 0.0:
+        pytest.skip("this kernel keeps no /proc/thread-self/schedstat")
+    spin_until = time.thread_time() + 0.02
+    while time.thread_time() < spin_until:
+        pass
+    run_spun, wait_spun, _ = mapper_stream.thread_clocks()
+    assert run_spun - run >= 0.015 and wait_spun >= wait
+    time.sleep(0.01)
+    assert mapper_stream.thread_clocks()[2] > switches  # sleeping blocks the thread
 
 
 def test_the_fitted_odometry_model_is_the_one_a_graph_was_written_with():
