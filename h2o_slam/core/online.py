@@ -41,6 +41,7 @@ from h2o_slam.core.converge import BACKGROUNDS, Converger, Solution
 from h2o_slam.core.errors import GraphError
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, edge_chi2
+from h2o_slam.core.heap import keep_freed_memory
 from h2o_slam.core.loop_spread import LoopSolve, spread_loop
 from h2o_slam.core.robust import RobustConfig
 from h2o_slam.core.solver import H2OSolver, SolverConfig
@@ -78,6 +79,11 @@ class OnlineConfig:
             reference counting and young cycles are collected before each freeze, but cycles
             among objects frozen earlier wait for ``gc.unfreeze()`` (``H2ONode.destroy_node``
             calls it).
+        heap_reserve_mb: keep memory the process frees for its own reuse and touch this
+            many MB of heap at construction (:func:`~h2o_slam.core.heap.keep_freed_memory`),
+            so that a callback's arrays land on resident pages, not fresh ones (a page fault
+            each: on a virtual machine up to 3 ms per MB). Process-wide; 0: leave ``malloc``
+            as it is.
         blas_threads: threads of every BLAS the process has loaded while this solver runs
             (process-wide, :class:`h2o_slam.core.blas.BlasLimit`; restored by :meth:`close`;
             ``None`` leaves them): a budgeted step's linear algebra is small, and the extra
@@ -124,6 +130,7 @@ class OnlineConfig:
     safety: float = 1.2
     reserve: float = 0.1
     freeze_gc: bool = True
+    heap_reserve_mb: int = 64
     blas_threads: int | None = 1
     background: str = "inline"
     merge_share: float = 0.3
@@ -144,6 +151,8 @@ class OnlineConfig:
             raise ValueError("balance_share must be in [0, 1]")
         if not 0.0 <= self.reserve < 1.0:
             raise ValueError("reserve must be in [0, 1)")
+        if self.heap_reserve_mb < 0:
+            raise ValueError("heap_reserve_mb must be >= 0")
         if self.gps_align_count < 2:
             raise ValueError("gps_align_count must be at least 2")
         if self.background not in BACKGROUNDS:
@@ -203,6 +212,8 @@ class OnlineH2O:
         ensure_warm_up()
         self.solver = H2OSolver(planar=planar, config=config)
         self.online = online or OnlineConfig()
+        if self.online.heap_reserve_mb:
+            keep_freed_memory(self.online.heap_reserve_mb)
         self._blas = (None if self.online.blas_threads is None
                       else BlasLimit(self.online.blas_threads))
         self.cost = UpdateCost()
