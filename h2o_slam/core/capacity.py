@@ -91,17 +91,20 @@ class GrowAhead:
             if item.used < _three_quarters(len(old)):
                 slack = min(slack, _three_quarters(len(old)) - item.used)
                 continue
-            if clock() + self.MARGIN * self.rate * 2 * old.nbytes > deadline:
+            capacity = max(2 * len(old), 1)
+            if clock() + self.MARGIN * self.rate * capacity * old[:1].nbytes > deadline:
                 self._next_total = 0
                 return False
             start = clock()
-            nbytes = grow(item.owner, item.name, 2 * len(old), item.fill)
+            nbytes = grow(item.owner, item.name, capacity, item.fill)
             seconds = clock() - start
-            # Quick to rise, slow to fall: one slow copy (fresh pages) is the one to plan for.
-            observed = seconds / nbytes
-            self.rate = max(observed, 0.9 * self.rate + 0.1 * observed)
+            if nbytes:
+                # Quick to rise, slow to fall: one slow copy (fresh pages) is the one to
+                # plan for.
+                observed = seconds / nbytes
+                self.rate = max(observed, 0.9 * self.rate + 0.1 * observed)
             self.grown += 1
-            slack = min(slack, _three_quarters(2 * len(old)) - item.used)
+            slack = min(slack, _three_quarters(capacity) - item.used)
         self._next_total = total + (0 if slack == math.inf else int(slack))
         return True
 

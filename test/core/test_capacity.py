@@ -42,6 +42,14 @@ def test_an_array_whose_copy_would_pass_the_deadline_waits() -> None:
     assert ahead.due(8)  # tried again at the next step
 
 
+def test_an_empty_array_grows_too() -> None:
+    owner = _Owner()
+    owner.full = np.zeros((0, 3))
+    ahead = GrowAhead()
+    assert ahead.run([Growable(owner, "full", 0.0, 0)], 0, deadline=1.0, clock=lambda: 0.0)
+    assert owner.full.shape == (1, 3)
+
+
 def test_the_arrays_are_looked_at_again_only_when_one_may_be_three_quarters_full() -> None:
     owner = _Owner()
     ahead = GrowAhead()
