@@ -88,8 +88,9 @@ class GrowAhead:
         slack = math.inf  # rows to add before the first array is three quarters full
         for item in arrays:
             old = getattr(item.owner, item.name)
-            if item.used < _three_quarters(len(old)):
-                slack = min(slack, _three_quarters(len(old)) - item.used)
+            room = _three_quarters(len(old)) - item.used
+            if room > 0:
+                slack = min(slack, room)
                 continue
             capacity = max(2 * len(old), 1)
             if clock() + self.MARGIN * self.rate * capacity * old[:1].nbytes > deadline:

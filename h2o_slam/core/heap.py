@@ -30,7 +30,7 @@ _M_MMAP_MAX = -4
 _NO_TRIM = (1 << 31) - 1
 
 _lock = threading.Lock()
-_kept = False
+_kept: bool | None = None  # None: not tried yet (a C library without mallopt stays False)
 _reserved_mb = 0
 
 
@@ -43,10 +43,10 @@ def keep_freed_memory(reserve_mb: int) -> bool:
     if reserve_mb < 0:
         raise ValueError(f"reserve_mb must be >= 0, got {reserve_mb}")
     with _lock:
-        if not _kept:
+        if _kept is None:
             _kept = _set_malloc_options()
-            if not _kept:
-                return False
+        if not _kept:
+            return False
         if reserve_mb > _reserved_mb:
             _touch(reserve_mb)
             _reserved_mb = reserve_mb

@@ -67,6 +67,12 @@ def start(h: Harness, **params: Any) -> tuple[H2ONode, dict[str, list[Any]]]:
     return node, outputs
 
 
+def taken_in(h: Harness, node: H2ONode, before: int, count: int, what: str) -> None:
+    """Spin until the node has handled ``count`` more inputs than ``before`` (its callback
+    count), whatever it decided: a fixed wait passes only on an idle machine."""
+    h.spin_until(lambda: node.times.count >= before + count, 10.0, what)
+
+
 def play(h: Harness, messages: list[StreamMessage], node: H2ONode | None = None) -> None:
     """Publish in order; with ``node``, wait until it has taken each message, so that
     the test does not depend on how DDS interleaves topics under load."""
@@ -75,7 +81,7 @@ def play(h: Harness, messages: list[StreamMessage], node: H2ONode | None = None)
         count = node.times.count if node is not None else 0
         h.publish(msg_type, role, m.msg, spins=0)
         if node is not None:
-            h.spin_until(lambda n=count: node.times.count > n, 10.0, f"{role} taken")
+            taken_in(h, node, count, 1, f"{role} taken")
     h.spin_for(0.3)
 
 
@@ -112,12 +118,6 @@ def latest_diagnostics(h: Harness, outputs: dict[str, list[Any]], node: H2ONode)
             if status.hardware_id == "h2o_slam" and node.get_name() in status.name:
                 return {kv.key: kv.value for kv in status.values}
     raise AssertionError("no h2o_node diagnostics")
-
-
-def taken_in(h: Harness, node: H2ONode, before: int, count: int, what: str) -> None:
-    """Spin until the node has handled ``count`` more inputs than ``before`` (its callback
-    count), whatever it decided: a fixed wait passes only on an idle machine."""
-    h.spin_until(lambda: node.times.count >= before + count, 10.0, what)
 
 
 def test_loop_closures_pull_the_graph_together(harness: Harness,
