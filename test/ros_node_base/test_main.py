@@ -82,3 +82,29 @@ def test_a_signal_while_the_node_is_built_is_a_normal_stop() -> None:
         return Node("built_after_the_signal")
 
     assert run_node(built_after_the_signal, "test", (), []) == 0
+
+
+def test_only_the_half_built_rclpy_logger_is_silenced_at_a_stop() -> None:
+    """What a Ctrl-C inside ``RcutilsLogger.__init__`` leaves (a logger without the
+    attribute its ``__del__`` reads) is dropped; any other unraisable error still reaches
+    the hook that was there before."""
+    from rclpy.impl.rcutils_logger import RcutilsLogger
+
+    from ros_node_base.main import _quiet_half_built_logger
+
+    seen: list[sys.UnraisableHookArgs] = []
+    before = sys.unraisablehook
+    sys.unraisablehook = _quiet_half_built_logger(seen.append)
+    try:
+        half_built = RcutilsLogger.__new__(RcutilsLogger)
+        del half_built
+
+        class Other:
+            def __del__(self) -> None:
+                raise AttributeError("another bug")
+
+        other = Other()
+        del other
+    finally:
+        sys.unraisablehook = before
+    assert [str(u.exc_value) for u in seen] == ["another bug"]
