@@ -28,7 +28,7 @@ F = TypeVar("F", bound=Callable[..., Any])
 #: function it compiled, so a kernel inlined from another module would go stale when that
 #: module changes: the cache folder is keyed by the sources of all of them.
 _KERNEL_MODULES = ("compiled", "condensed", "exact", "geometry", "jacobians", "hybrid",
-                   "interpolate", "solver", "tree")
+                   "interpolate", "loop_spread", "solver", "tree")
 
 
 def _cache_dir() -> str:

@@ -193,23 +193,32 @@ def _wrapped(angle: float) -> float:
 
 
 @kernel
+def _inverse3(S: Array, out: Array) -> None:
+    """``out = S⁻¹`` for a 3×3 ``S`` by its adjugate (no allocation; LAPACK's call per
+    chain cost more)."""
+    out[0, 0] = S[1, 1] * S[2, 2] - S[1, 2] * S[2, 1]
+    out[1, 0] = S[1, 2] * S[2, 0] - S[1, 0] * S[2, 2]
+    out[2, 0] = S[1, 0] * S[2, 1] - S[1, 1] * S[2, 0]
+    out[0, 1] = S[0, 2] * S[2, 1] - S[0, 1] * S[2, 2]
+    out[1, 1] = S[0, 0] * S[2, 2] - S[0, 2] * S[2, 0]
+    out[2, 1] = S[0, 1] * S[2, 0] - S[0, 0] * S[2, 1]
+    out[0, 2] = S[0, 1] * S[1, 2] - S[0, 2] * S[1, 1]
+    out[1, 2] = S[0, 2] * S[1, 0] - S[0, 0] * S[1, 2]
+    out[2, 2] = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
+    det = S[0, 0] * out[0, 0] + S[0, 1] * out[1, 0] + S[0, 2] * out[2, 0]
+    for r in range(3):
+        for q in range(3):
+            out[r, q] /= det
+
+
+@kernel
 def _solve3(S: Array, v: Array) -> Array:
-    """``S⁻¹ v`` for a 3×3 ``S`` by its adjugate: LAPACK's call per chain cost more."""
-    c00 = S[1, 1] * S[2, 2] - S[1, 2] * S[2, 1]
-    c01 = S[1, 2] * S[2, 0] - S[1, 0] * S[2, 2]
-    c02 = S[1, 0] * S[2, 1] - S[1, 1] * S[2, 0]
-    det = S[0, 0] * c00 + S[0, 1] * c01 + S[0, 2] * c02
+    """``S⁻¹ v`` for a 3×3 ``S``."""
     inv = np.empty((3, 3))
-    inv[0, 0], inv[1, 0], inv[2, 0] = c00, c01, c02
-    inv[0, 1] = S[0, 2] * S[2, 1] - S[0, 1] * S[2, 2]
-    inv[0, 2] = S[0, 1] * S[1, 2] - S[0, 2] * S[1, 1]
-    inv[1, 1] = S[0, 0] * S[2, 2] - S[0, 2] * S[2, 0]
-    inv[1, 2] = S[0, 2] * S[1, 0] - S[0, 0] * S[1, 2]
-    inv[2, 1] = S[0, 1] * S[2, 0] - S[0, 0] * S[2, 1]
-    inv[2, 2] = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
+    _inverse3(S, inv)
     out = np.empty(3)
     for r in range(3):
-        out[r] = (inv[r, 0] * v[0] + inv[r, 1] * v[1] + inv[r, 2] * v[2]) / det
+        out[r] = inv[r, 0] * v[0] + inv[r, 1] * v[1] + inv[r, 2] * v[2]
     return out
 
 

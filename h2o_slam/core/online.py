@@ -53,6 +53,12 @@ SPREAD_TRIES = 8
 #: A closure whose χ² at the current map is below this is not spread (measured on CSAIL:
 #: nine in ten spreads of such closures were refused, at 1-2 ms each).
 SPREAD_MIN_CHI2 = 10.0
+#: χ² of a closure before its first correction above which (and above the map's own) a
+#: solution without it is dropped rather than merged (:meth:`Converger.stale`).
+BIG_CORRECTION_CHI2 = 100.0
+#: Most closures newer than a merged solution looked at again, the newest (a worker far
+#: behind leaves thousands; each look is a residual, ~20 µs, inside a callback's budget).
+RELAX_AGAIN_MAX = 32
 
 
 @dataclass(frozen=True)
@@ -647,6 +653,7 @@ class OnlineH2O:
             self._respread.extend(e for e in newer.tolist()
                                   if e in self._spread_kept and e not in queued)
             self._spread_kept = {e for e in self._spread_kept if e >= solved}
+        self._relax_again(solved)
         if sol.weights is not None:
             old = self.solver.weight[:solved] > 0.5
             new = sol.weights[:solved] > 0.5
@@ -656,6 +663,26 @@ class OnlineH2O:
             self.solver.set_weights(sol.weights[:solved], np.arange(solved))
             for edge in changed.tolist():
                 self._stale[edge] = None
+
+    def _relax_again(self, solved: int) -> None:
+        """Closures newer than a merged solution, whose update an earlier step made (their
+        spread did not fit), lost that correction with the poses the merge replaced
+        (kitti_00, a closure 4,450 poses back: χ² 216 before the merge of a solution without
+        it, 1.7·10⁵ after): those still far off are relaxed again, first in the queue."""
+        s = self.solver
+        m = s.num_edges
+        if solved >= m:
+            return
+        kinds, a, b = s.kind[solved:m], s.a[solved:m], s.b[solved:m]
+        closures = solved + np.flatnonzero((kinds == EdgeKind.RELATIVE) & (np.abs(a - b) > 1)
+                                           & (s.weight[solved:m] > 0.0))
+        queued = set(self.pending)
+        again = []
+        for edge in closures[-RELAX_AGAIN_MAX:].tolist():
+            r = s.residual(edge)
+            if edge not in queued and float(r @ r) > SPREAD_MIN_CHI2:
+                again.append(edge)
+        self.pending.extendleft(reversed(again))
 
     def _forget_solved(self, solved: int) -> None:
         """The first ``solved`` edges were solved together, the map at their optimum or on
@@ -792,6 +819,8 @@ class OnlineH2O:
             self.cost.update(d, s, self._clock() - begin)
             if outcome.accepted:
                 self._priority[edge] = min(outcome.energy_after, outcome.chi2_before)
+                if solver.kind[edge] == EdgeKind.RELATIVE:
+                    self._mark_big(edge, outcome.chi2_before)
                 return True
             report.undone += 1
             scale = 0.5 * (solver.temperature if scale is None else scale)
@@ -825,10 +854,24 @@ class OnlineH2O:
         a, b = int(solver.a[edge]), int(solver.b[edge])
         if solver.kind[edge] != EdgeKind.RELATIVE or abs(a - b) < 2 or solver.weight[edge] <= 0:
             return True
-        lo, hi = min(a, b), max(a, b)
         r = solver.residual(edge)
         if float(r @ r) < SPREAD_MIN_CHI2:
             return True  # the tree path's update is enough
+        done = self._spread_or_solve(edge, min(a, b), max(a, b), deadline)
+        if edge in self._spread_kept:
+            self._mark_big(edge, float(r @ r))
+        return done
+
+    def _mark_big(self, edge: int, chi2_before: float) -> None:
+        """A closure whose first correction took its χ² down from more than the whole map's
+        (converged) χ²: a solution solved without it must not be merged over it."""
+        ref = self.converger.state.converged_chi2
+        if chi2_before > max(BIG_CORRECTION_CHI2, ref if math.isfinite(ref) else 0.0):
+            self.converger.stale(edge + 1)
+
+    def _spread_or_solve(self, edge: int, lo: int, hi: int, deadline: float) -> bool:
+        """:meth:`_spread` of a closure far enough off to be worth it."""
+        solver = self.solver
         if self.online.solve_loops:
             # The condensed solve first (where it applies), then the loop solve from its
             # answer where that fits: the condensed problem's optimum is the loop's to
@@ -899,6 +942,19 @@ class OnlineH2O:
             return None
         return loop.run(solver, free, edges, deadline, clock, safety)
 
+    def _crossed(self, edge: int, lo: int, hi: int) -> bool:
+        """Another closure or a GPS fix ends inside the loop ``lo → hi``: the spread, which
+        solves the loop as if nothing else tied it, would bend them (kitti_00, a closure
+        2,055 poses back across 20 older ones: r 932 after the spread, 5.8 after the tree
+        path's update alone)."""
+        s, m = self.solver, self.solver.num_edges
+        a, b = s.a[:m], s.b[:m]
+        inside = ((a > lo) & (a <= hi)) | ((b > lo) & (b <= hi))
+        inside[edge] = False
+        chain = self._odometry_edge[lo + 1: s.num_nodes]
+        inside[chain[chain >= 0]] = False
+        return bool(np.any(inside & (s.weight[:m] > 0.0)))
+
     def _spread_chain(self, edge: int, lo: int, hi: int, deadline: float) -> bool:
         """The spread of ``edge`` along its odometry chain (see :meth:`_spread`)."""
         solver = self.solver
@@ -907,6 +963,9 @@ class OnlineH2O:
         if len(chain) < hi - lo or np.any(chain < 0):
             return True
         m = solver.num_edges
+        if self._crossed(edge, lo, hi):
+            self.spreads["crossed"] += 1
+            return True
         touched = (solver.a[:m] > lo) | (solver.b[:m] > lo)
         work = (solver.num_nodes - lo) + int(np.count_nonzero(touched))
         predicted = self.spread_cost.predict(work) * self.spread_cost.margin(self.online.safety)

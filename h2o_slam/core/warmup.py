@@ -27,7 +27,7 @@ from h2o_slam.core.condensed import Reduced, solve_loop
 from h2o_slam.core.exact import converge_exact
 from h2o_slam.core.graph import EARTH, EdgeKind
 from h2o_slam.core.jacobians import chain_jacobians, endpoint_jacobians
-from h2o_slam.core.loop_spread import dead_reckon
+from h2o_slam.core.loop_spread import dead_reckon, spread_loop
 from h2o_slam.core.solver import H2OSolver
 from h2o_slam.core.tree import PoseTree, spanning_parents
 
@@ -122,6 +122,10 @@ def _condensed_loop() -> None:
     closure = Reduced(np.array([0]), np.array([8]), np.zeros((1, 3)), np.eye(3)[None],
                       np.empty(0, np.int64))
     solve_loop(pose, 0, inc, cov, closure, 2, 1e-6, lambda: False)
+    R, t = geo.yaw_to_matrix(pose[:, 2]), np.column_stack([pose[:, :2], np.zeros(9)])
+    for a, b in ((0, 8), (8, 0)):
+        spread_loop(R, t, a, b, np.eye(3), np.zeros(3), np.eye(6), np.tile(np.eye(6), (8, 1, 1)),
+                    geo.PLANAR_DOF, 1)
     Reduced(closure.a, closure.b, closure.meas, closure.info, np.array([8])).rotations_first(
         pose)
 

@@ -18,9 +18,12 @@ from h2o_slam.core.condensed import planar_chi2, planar_poses
 from h2o_slam.core.graph import chi2, edge_chi2
 from h2o_slam.core.loop_spread import (
     LoopSolve,
+    _covariances,
     adjoint,
     closure_error,
+    perturbed,
     spread_loop,
+    spread_step,
 )
 from h2o_slam.core.modes import build_solver, solve_exact
 
@@ -129,3 +132,28 @@ def test_a_loop_solve_cut_short_goes_on_from_the_poses_it_reached() -> None:
     np.testing.assert_allclose(solver.world_poses()[1][:11], old, atol=1e-9)
     # The optimum with nodes 0-10 held where dead reckoning put them.
     assert solver.chi2(g) < 0.01 * start
+
+
+@pytest.mark.parametrize("reverse", [False, True])
+@pytest.mark.parametrize("steps", [1, 3])
+def test_the_compiled_planar_spread_is_the_general_spread_on_planar_poses(
+        reverse: bool, steps: int) -> None:
+    """The planar kernel in (x, y, yaw) and the general steps in SE(3) (``spread_step`` and
+    ``perturbed`` over the planar degrees of freedom) give the same poses."""
+    g = loop_graph(5, True, 50, reverse)
+    dof = geo.PLANAR_DOF
+    a, b = int(g.a[-1]), int(g.b[-1])
+    R, t = spread_loop(g.R, g.t, a, b, g.meas_R[-1], g.meas_t[-1], g.info[-1], g.info[:-1],
+                       dof, steps=steps)
+    lo, hi = min(a, b), max(a, b)
+    D_R, D_t = geo.between(g.R[lo:hi], g.t[lo:hi], g.R[lo + 1: hi + 1], g.t[lo + 1: hi + 1])
+    cov_closure, cov = _covariances(g.info[-1], g.info[:-1], dof)
+    moved = np.zeros((hi - lo, 6))
+    R_gen, t_gen = g.R, g.t
+    for _ in range(steps):
+        moved = spread_step(R_gen, t_gen, a, b, g.meas_R[-1], g.meas_t[-1], cov_closure, cov,
+                            dof, moved)
+        R_gen, t_gen = perturbed(g.R, g.t, lo, hi, D_R, D_t, moved)
+    assert not np.allclose(t, g.t)
+    np.testing.assert_allclose(R, R_gen, atol=1e-9)
+    np.testing.assert_allclose(t, t_gen, atol=1e-9)
