@@ -48,23 +48,38 @@ def planar_poses(R: Array, t: Array) -> Array:
 def relative_jacobians(pose_a: Array, pose_b: Array, meas: Array
                        ) -> tuple[Array, Array, Array]:
     """The error ``meas⁻¹ (a⁻¹ b)`` of planar relative edges and its Jacobians with respect
-    to the ``(x, y, yaw)`` of each end, shapes ``(m, 3)``, ``(m, 3, 3)``, ``(m, 3, 3)``."""
-    err = geo.planar_between(meas, geo.planar_between(pose_a, pose_b))
-    ca, sa = np.cos(pose_a[:, 2]), np.sin(pose_a[:, 2])
-    cm, sm = np.cos(meas[:, 2]), np.sin(meas[:, 2])
-    dx, dy = pose_b[:, 0] - pose_a[:, 0], pose_b[:, 1] - pose_a[:, 1]
-    # Rmᵀ Raᵀ = R(θa + θm)ᵀ on the translations, Rmᵀ (dRaᵀ/dθ) (t_b − t_a) on θa.
-    c, s = np.cos(pose_a[:, 2] + meas[:, 2]), np.sin(pose_a[:, 2] + meas[:, 2])
-    rot = np.empty((len(err), 2, 2))
-    rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1] = c, s, -s, c
-    d_yaw = np.stack([-sa * dx + ca * dy, -ca * dx - sa * dy], axis=1)
-    turn = np.stack([cm * d_yaw[:, 0] + sm * d_yaw[:, 1],
-                     -sm * d_yaw[:, 0] + cm * d_yaw[:, 1]], axis=1)
-    Jb = np.zeros((len(err), 3, 3))
-    Jb[:, :2, :2], Jb[:, 2, 2] = rot, 1.0
-    Ja = -Jb
-    Ja[:, :2, 2] = turn
+    to the ``(x, y, yaw)`` of each end, shapes ``(m, 3)``, ``(m, 3, 3)``, ``(m, 3, 3)``.
+    Compiled: a condensed solve calls it once per iteration, and numpy's twenty calls on a
+    few dozen edges took 0.13-0.22 ms each time."""
+    m = len(meas)
+    err, Ja, Jb = np.empty((m, 3)), np.zeros((m, 3, 3)), np.zeros((m, 3, 3))
+    _relative_jacobians(np.ascontiguousarray(pose_a, dtype=float),
+                        np.ascontiguousarray(pose_b, dtype=float),
+                        np.ascontiguousarray(meas, dtype=float), err, Ja, Jb)
     return err, Ja, Jb
+
+
+@kernel
+def _relative_jacobians(pose_a: Array, pose_b: Array, meas: Array, err: Array, Ja: Array,
+                        Jb: Array) -> None:
+    for k in range(len(meas)):
+        ca, sa = np.cos(pose_a[k, 2]), np.sin(pose_a[k, 2])
+        cm, sm = np.cos(meas[k, 2]), np.sin(meas[k, 2])
+        dx, dy = pose_b[k, 0] - pose_a[k, 0], pose_b[k, 1] - pose_a[k, 1]
+        # a⁻¹ b, then meas⁻¹ of it.
+        rx, ry = ca * dx + sa * dy, -sa * dx + ca * dy
+        ex, ey = rx - meas[k, 0], ry - meas[k, 1]
+        err[k, 0], err[k, 1] = cm * ex + sm * ey, -sm * ex + cm * ey
+        err[k, 2] = _wrapped(_wrapped(pose_b[k, 2] - pose_a[k, 2]) - meas[k, 2])
+        # Rmᵀ Raᵀ = R(θa + θm)ᵀ on the translations, Rmᵀ (dRaᵀ/dθ) (t_b − t_a) on θa.
+        c, s = np.cos(pose_a[k, 2] + meas[k, 2]), np.sin(pose_a[k, 2] + meas[k, 2])
+        Jb[k, 0, 0], Jb[k, 0, 1], Jb[k, 1, 0], Jb[k, 1, 1], Jb[k, 2, 2] = c, s, -s, c, 1.0
+        for r in range(3):
+            for q in range(3):
+                Ja[k, r, q] = -Jb[k, r, q]
+        yx, yy = -sa * dx + ca * dy, -ca * dx - sa * dy
+        Ja[k, 0, 2] = cm * yx + sm * yy
+        Ja[k, 1, 2] = -sm * yx + cm * yy
 
 
 @dataclass(frozen=True)
