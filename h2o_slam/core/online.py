@@ -677,13 +677,11 @@ class OnlineH2O:
         kinds, a, b = s.kind[solved:m], s.a[solved:m], s.b[solved:m]
         closures = solved + np.flatnonzero((kinds == EdgeKind.RELATIVE) & (np.abs(a - b) > 1)
                                            & (s.weight[solved:m] > 0.0))
-        queued = set(self.pending)
-        again = []
-        for edge in closures[-RELAX_AGAIN_MAX:].tolist():
-            r = s.residual(edge)
-            if edge not in queued and float(r @ r) > SPREAD_MIN_CHI2:
-                again.append(edge)
-        self.pending.extendleft(reversed(again))
+        again = [edge for edge in closures[-RELAX_AGAIN_MAX:].tolist()
+                 if _chi2_of(s, edge) > SPREAD_MIN_CHI2]
+        if again:  # the queue can hold thousands: looked at only when one is far off
+            queued = set(self.pending)
+            self.pending.extendleft(reversed([e for e in again if e not in queued]))
 
     def _forget_solved(self, solved: int) -> None:
         """The first ``solved`` edges were solved together, the map at their optimum or on
@@ -790,8 +788,7 @@ class OnlineH2O:
                 return
             e = lo + self._refresh_cursor % (m - lo)
             self._refresh_cursor += 1
-            r = self.solver.residual(e)
-            self._priority[e] = float(r @ r)
+            self._priority[e] = _chi2_of(self.solver, e)
 
     def _relax_within(self, edge: int, deadline: float, report: StepReport) -> bool:
         """Relax ``edge`` if it fits before ``deadline``; False if it must wait.
@@ -855,12 +852,12 @@ class OnlineH2O:
         a, b = int(solver.a[edge]), int(solver.b[edge])
         if solver.kind[edge] != EdgeKind.RELATIVE or abs(a - b) < 2 or solver.weight[edge] <= 0:
             return True
-        r = solver.residual(edge)
-        if float(r @ r) < SPREAD_MIN_CHI2:
+        chi2_before = _chi2_of(solver, edge)
+        if chi2_before < SPREAD_MIN_CHI2:
             return True  # the tree path's update is enough
         done = self._spread_or_solve(edge, min(a, b), max(a, b), deadline)
         if edge in self._spread_kept:
-            self._mark_big(edge, float(r @ r))
+            self._mark_big(edge, chi2_before)
         return done
 
     def _mark_big(self, edge: int, chi2_before: float) -> None:
@@ -1039,6 +1036,12 @@ def _planar_chi2(solver: H2OSolver, edges: np.ndarray, pose: Array) -> float:
     ``pose``: the condensed solve's check, from the edge table's planar copies."""
     return planar_chi2(solver.a[edges], solver.b[edges], solver.planar_meas[edges],
                        solver.planar_info[edges], solver.weight[edges], pose)
+
+
+def _chi2_of(solver: H2OSolver, edge: int) -> float:
+    """One edge's χ² at the current map (its whitened residual's square)."""
+    r = solver.residual(edge)
+    return float(r @ r)
 
 
 def _moved_chi2(solver: H2OSolver, edges: np.ndarray, R: Array, t: Array) -> float:
