@@ -764,7 +764,8 @@ class Converger:
         n, m = self.solver.num_nodes, self.solver.num_edges
         if self._written < m:
             return  # the backlog of a new file or a restarted worker streams first
-        if self.copy_cost.predict(n) * self.copy_cost.margin(safety) > deadline - clock():
+        if not self.copy_cost.fits(deadline - clock(), safety, n):
+            self.copy_cost.forget()
             return
         # A fresh file's first touches fault its pages in: no sample for the model.
         fresh = worker.ensure_capacity(n, m)
@@ -837,6 +838,7 @@ class Converger:
             room = (deadline - clock()) / self.merge_cost.margin(safety) - c0
             count = sol.nodes - self._cursor if deadline == math.inf else int(room / c1)
             if count < min(256, sol.nodes - self._cursor):
+                self.merge_cost.forget()
                 return None  # slices too small cost more in overhead than they move
             begin = clock()
             hi = min(sol.nodes, self._cursor + count)

@@ -86,10 +86,23 @@ class CostModel:
         self.spread = max(1.1, min(ratio, 2.0), 0.995 * self.spread)
         self._A = self._fading * self._A + np.outer(x, x)
         self._b = self._fading * self._b + x * seconds
+        self._fit()
+        self.samples += 1
+
+    def forget(self, factor: float = 0.9) -> None:
+        """Fade every sample by ``factor`` toward the prior, and the margin with them:
+        called when the work was refused, since only work that runs produces the samples
+        that would correct a slow one (one 20 ms copy of a 120-node tree, a preempted
+        sample on a busy machine, and no snapshot ever fitted a callback again)."""
+        self._A *= factor
+        self._b *= factor
+        self._fit()
+        self.spread = max(1.1, factor * self.spread)
+
+    def _fit(self) -> None:
         coef = np.linalg.solve(self._A + self._ridge, self._b + self._ridge @ self.prior)
         # No size makes work cheaper; a slope at zero would promise any size fits.
         self.coef = np.maximum(coef, 0.1 * self.prior)
-        self.samples += 1
 
     def fits(self, remaining_s: float, safety: float, *sizes: float) -> bool:
         """Work of these sizes, with its :meth:`margin`, fits in ``remaining_s`` seconds."""

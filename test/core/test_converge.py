@@ -364,6 +364,41 @@ def test_edges_that_never_fit_the_budget_are_solved_by_the_worker(city):
         h2o.close()
 
 
+def test_one_slow_snapshot_copy_does_not_stop_the_worker_for_good(city):
+    """A copy preempted on a busy machine teaches the cost model a slow sample: refused
+    snapshots fade it until one fits again (without, a CI run's worker answered once and
+    never got another job)."""
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(background="process", freeze_gc=False))
+    try:
+        _feed(h2o, city, city.num_nodes, 2e-4)
+        h2o.converger.copy_cost.update(0.02, city.num_nodes)
+        assert not h2o.converger.copy_cost.fits(2e-3, h2o.online.safety, city.num_nodes)
+        deadline = time.monotonic() + 60.0
+        while h2o.converger.outside() and time.monotonic() < deadline:
+            h2o.step(2e-3)
+            time.sleep(2e-3)
+        assert h2o.converger.state.converged_edges == city.num_edges, h2o.converger.state
+    finally:
+        h2o.close()
+
+
+def test_one_slow_merge_does_not_hold_a_solution_for_good(city):
+    """As a slow copy: refused merge slices fade a preempted sample."""
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(background="inline", freeze_gc=False))
+    _feed(h2o, city, city.num_nodes, None)
+    conv = h2o.converger
+    merges = conv.state.merges
+    conv.merge_cost.update(0.05, city.num_nodes)
+    conv._received(_solve_snapshot(h2o, city))
+    h2o.step(2e-3)
+    assert conv._merging is not None  # refused: predicted far over the budget
+    steps = 1
+    while conv._merging is not None and steps < 500:
+        h2o.step(2e-3)
+        steps += 1
+    assert conv._merging is None and conv.state.merges == merges + 1
+
+
 def test_converge_solves_now_and_clears_the_waiting_edges(city):
     h2o = OnlineH2O(planar=True, online=OnlineConfig(background="off"))
     _fake_clock(h2o, 1.0)  # nothing ever fits: every new edge waits

@@ -80,3 +80,22 @@ def test_work_fits_when_its_prediction_with_margin_does() -> None:
     need = model.predict(500.0) * model.margin(1.5)  # 1.5 ms × 1.5
     assert model.fits(need, 1.5, 500.0)
     assert not model.fits(0.99 * need, 1.5, 500.0)
+
+
+def test_refused_work_fades_a_slow_sample_until_the_work_fits_again() -> None:
+    """Only work that runs produces samples: one preempted sample must not keep it from
+    fitting for good."""
+    model = CostModel((5e-5, 2e-8), (1000.0,))
+    model.update(5e-5 + 2e-8 * 120, 120.0)
+    fits_before = model.fits(1e-3, 1.5, 120.0)
+    model.update(0.02, 120.0)  # preempted for 20 ms
+    assert fits_before and not model.fits(1e-3, 1.5, 120.0)
+    refusals = 0
+    while not model.fits(1e-3, 1.5, 120.0):
+        model.forget()
+        refusals += 1
+    assert 10 < refusals < 100
+    for _ in range(100):
+        model.forget()
+    assert model.predict(120.0) == pytest.approx(5e-5 + 2e-8 * 120, rel=0.05)
+    assert model.spread == pytest.approx(1.1)
