@@ -162,6 +162,58 @@ def test_a_closure_far_off_in_yaw_starts_from_the_rotations(monkeypatch) -> None
     assert _chi2(g, stalled) / best > 100.0
 
 
+def _dense_step(J_rows, err, info):
+    """argmin Σ (e + J δ)ᵀ Ω (e + J δ) over the free unknowns, as one dense solve."""
+    H = sum(J.T @ W @ J for J, W in zip(J_rows, info, strict=True))
+    g = sum(J.T @ W @ e for J, e, W in zip(J_rows, err, info, strict=True))
+    return np.linalg.solve(H, -g)
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 10_000))
+def test_rotations_first_is_lagos_two_solves_with_the_held_nodes_fixed(seed) -> None:
+    """The yaws from the yaw errors alone, then the positions at those yaws: each the least
+    squares of its own unknowns, solved here densely, one node's columns at a time."""
+    rng = np.random.default_rng(seed)
+    n, m = 8, 10
+    a, b = rng.integers(0, n, m), rng.integers(0, n, m)
+    keep = a != b  # and a chain through every node, so that each solve is determined
+    a, b = np.append(np.arange(n - 1), a[keep]), np.append(np.arange(1, n), b[keep])
+    pose = np.column_stack([rng.uniform(-5, 5, (n, 2)), rng.uniform(-3, 3, n)])
+    meas = geo.planar_between(pose[a], pose[b]) + rng.normal(0.0, 0.3, (len(a), 3))
+    L = rng.normal(0.0, 1.0, (len(a), 3, 3))
+    info = L @ L.transpose(0, 2, 1) + 3.0 * np.eye(3)
+    free = np.arange(2, n)  # nodes 0 and 1 held
+    reduced = cd.Reduced(a, b, meas, info, free)
+    got = reduced.rotations_first(pose)
+
+    col = {node: i for i, node in enumerate(free)}
+
+    def rows(Ja, Jb, dofs):
+        out = []
+        for e in range(len(a)):
+            J = np.zeros((len(dofs), len(dofs) * len(free)))
+            for node, Jn in ((a[e], Ja[e]), (b[e], Jb[e])):
+                if node in col:
+                    J[:, col[node] * len(dofs):(col[node] + 1) * len(dofs)] += Jn
+            out.append(J)
+        return out
+
+    yaw_err = geo.wrap_angle(pose[b, 2] - pose[a, 2] - meas[:, 2])[:, None]
+    yaw_info = (1.0 / np.linalg.inv(info)[:, 2, 2])[:, None, None]
+    one = np.ones((len(a), 1, 1))
+    turned = pose.copy()
+    turned[free, 2] = geo.wrap_angle(
+        pose[free, 2] + _dense_step(rows(-one, one, [2]), yaw_err, yaw_info))
+    err, Ja, Jb = cd.relative_jacobians(turned[a], turned[b], meas)
+    dxy = _dense_step(rows(Ja[:, :2, :2], Jb[:, :2, :2], [0, 1]), err[:, :2],
+                      info[:, :2, :2])
+    want = turned.copy()
+    want[free, :2] += dxy.reshape(-1, 2)
+    np.testing.assert_allclose(got, want, atol=1e-8)
+    np.testing.assert_array_equal(got[:2], pose[:2])
+
+
 def test_out_of_time_stops_after_the_first_iteration_and_still_fills_in() -> None:
     g = loop_graph(3, True, 300, reverse=True, closures=((150, 40), (260, 120)))
     inc, cov, cross = _parts(g, 0)
