@@ -652,7 +652,10 @@ class Converger:
 
         ``unlimited``: no budget (merge whole, solve inline on the geometric schedule);
         ``idle``: no edge arrived since the last step (solve inline whenever it fits);
-        ``hold_before``: a solution of fewer edges waits (unless its merge has begun).
+        ``hold_before``: a solution of fewer edges waits, also one whose merge has begun:
+        the rest of its merge, after a closure's correction in the same step, would put back
+        the poses from before it (kitti_00, closure 4,455 → 5: r 1,899 right after its
+        callback); the next step merges it and corrects the closure again.
         """
         if not self.enabled:
             return None
@@ -669,7 +672,7 @@ class Converger:
         elif idle and not unlimited and self._merging is None and self._starved(clock):
             self._iterate_live(deadline, clock, safety)
         sol = self._merging
-        if sol is None or (self._cursor == 0 and sol.edges < hold_before):
+        if sol is None or sol.edges < hold_before:
             return None
         return self._merge(math.inf if unlimited else deadline, clock, safety)
 

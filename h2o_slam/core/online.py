@@ -866,6 +866,8 @@ class OnlineH2O:
         ref = self.converger.state.converged_chi2
         if chi2_before > max(BIG_CORRECTION_CHI2, ref if math.isfinite(ref) else 0.0):
             self.converger.stale(edge + 1)
+            # And a merge under way waits for the next step, which corrects it again.
+            self._corrected = max(self._corrected, edge + 1)
 
     def _spread_or_solve(self, edge: int, lo: int, hi: int, deadline: float) -> bool:
         """:meth:`_spread` of a closure far enough off to be worth it."""

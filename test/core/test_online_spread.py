@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections import Counter
 
 import pytest
@@ -10,7 +11,7 @@ from graphs import loop_graph
 from h2o_slam.core.converge import Solution, merge_solution
 from h2o_slam.core.graph import EdgeKind, PoseGraph
 from h2o_slam.core.modes import add_arrival, arrivals, solve_exact
-from h2o_slam.core.online import OnlineConfig, OnlineH2O, StepReport
+from h2o_slam.core.online import OnlineConfig, OnlineH2O, StepReport, _chi2_of
 
 
 def chi2_after_closure(g: PoseGraph, spread: bool, solve: bool, budget_s: float | None
@@ -51,6 +52,35 @@ def test_a_loop_that_older_closures_cross_is_solved(planar: bool) -> None:
     solved, counts = chi2_after_closure(g, True, True, None)
     assert counts == {"solved": 3}
     assert solved < 1.01
+
+
+def test_a_merge_under_way_waits_out_the_step_that_corrects_a_big_closure() -> None:
+    """A solution without the closure, half merged when the closure arrives: the step that
+    corrects the closure does not finish that merge (the map keeps the correction); the next
+    finishes it and corrects the closure again."""
+    g = loop_graph(4, True, 120, reverse=False)
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(background="inline", spread_loops=False))
+    try:
+        older, closure = _older_solution_then_closure(h2o, g)
+        conv = h2o.converger
+        half = older.nodes // 2
+        merge_solution(h2o.solver.tree, older, 0, half)
+        conv._merging, conv._cursor = older, half  # noqa: SLF001 - a merge under way
+        h2o._corrected = 0  # noqa: SLF001 - what a step starts with
+        raw = _chi2_of(h2o.solver, closure)
+        h2o._relax_new(float("inf"), StepReport())  # noqa: SLF001 - the closure's update
+        corrected = h2o.solver.chi2(g)
+        assert _chi2_of(h2o.solver, closure) < 0.1 * raw
+        # The rest of that step: its last chance to merge.
+        h2o._converge_within(time.perf_counter() + 1.0, False, True, StepReport())  # noqa: SLF001
+        assert conv._merging is older  # noqa: SLF001 - held
+        assert h2o.solver.chi2(g) == corrected
+        merges = conv.state.merges
+        h2o.step(0.5)
+        assert conv._merging is None and conv.state.merges > merges  # noqa: SLF001
+        assert h2o.solver.chi2(g) < 1.5 * corrected
+    finally:
+        h2o.close()
 
 
 @pytest.mark.parametrize("planar", [True, False])
