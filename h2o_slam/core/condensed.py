@@ -127,12 +127,13 @@ def _condense(bounds: np.ndarray, inc: Array, cov: Array, meas: Array, chain_cov
     """Each chain's increments composed (``meas``) and the covariance of that composition
     (``chain_cov``), every increment's carried to the chain's end."""
     walk, still = np.empty_like(inc), np.zeros_like(inc)
+    inc_trig, trig = _yaw_trig(inc), np.empty((len(inc), 2))
     zero, lin = np.zeros(3), np.zeros(3)
     carried = np.empty((len(inc), 3, 3))
     for s in range(len(bounds) - 1):
         lo, hi = bounds[s], bounds[s + 1]
-        _walk_chain(zero, inc, still, lo, hi, walk)
-        chain_cov[s] = _carry(walk, cov, still, lo, hi, carried, lin)
+        _walk_chain(zero, inc, inc_trig, still, lo, hi, walk, trig)
+        chain_cov[s] = _carry(walk, trig, cov, still, lo, hi, carried, lin)
         meas[s, 0], meas[s, 1] = walk[hi - 1, 0], walk[hi - 1, 1]
         meas[s, 2] = _wrapped(walk[hi - 1, 2])
 
@@ -171,6 +172,7 @@ def _fill_chains(first: Array, last: Array, bounds: np.ndarray, inc: Array, cov:
     world pose ``first[s]`` to join ``last[s]``): ``moved`` updated in place, the poses in
     ``out`` (yaw unwrapped)."""
     carried = np.empty((len(inc), 3, 3))
+    inc_trig, trig = _yaw_trig(inc), np.empty((len(inc), 2))
     lin = np.empty(3)
     for s in range(len(bounds) - 1):
         lo, hi = bounds[s], bounds[s + 1]
@@ -181,7 +183,7 @@ def _fill_chains(first: Array, last: Array, bounds: np.ndarray, inc: Array, cov:
         tyaw = last[s, 2] - first[s, 2]
         ct, st = np.cos(tyaw), np.sin(tyaw)
         for step in range(steps + 1):
-            _walk_chain(first[s], inc, moved, lo, hi, out)
+            _walk_chain(first[s], inc, inc_trig, moved, lo, hi, out, trig)
             if step == steps:
                 break
             # e = J⁻¹ (target⁻¹ (first⁻¹ end)): the end's error in the increments' frame.
@@ -193,7 +195,7 @@ def _fill_chains(first: Array, last: Array, bounds: np.ndarray, inc: Array, cov:
             lin[0], lin[1], lin[2] = ce * e0 + se * e1, -se * e0 + ce * e1, e2
             if step and max(abs(lin[0]), abs(lin[1]), abs(lin[2])) < closed:
                 break
-            S = _carry(out, cov, moved, lo, hi, carried, lin)
+            S = _carry(out, trig, cov, moved, lo, hi, carried, lin)
             lam = _solve3(S, lin)
             for i in range(lo, hi):
                 ac = carried[i]
@@ -238,39 +240,56 @@ def _solve3(S: Array, v: Array) -> Array:
 
 
 @kernel
-def _walk_chain(start: Array, inc: Array, moved: Array, lo: int, hi: int, out: Array
-                ) -> None:
-    """Dead reckoning from ``start`` along ``inc ⊕ moved`` over increments ``lo:hi``: the
-    world ``(x, y, yaw)`` of each (yaw unwrapped) in ``out``."""
-    x, y, yaw = start[0], start[1], start[2]
-    for i in range(lo, hi):
-        c, s = np.cos(inc[i, 2]), np.sin(inc[i, 2])
-        dx = inc[i, 0] + c * moved[i, 0] - s * moved[i, 1]
-        dy = inc[i, 1] + s * moved[i, 0] + c * moved[i, 1]
-        ch, sh = np.cos(yaw), np.sin(yaw)
-        x += ch * dx - sh * dy
-        y += sh * dx + ch * dy
-        yaw += inc[i, 2] + moved[i, 2]
-        out[i, 0], out[i, 1], out[i, 2] = x, y, yaw
+def _yaw_trig(inc: Array) -> Array:
+    """Cosine and sine of each row's yaw, ``(k, 2)``."""
+    out = np.empty((len(inc), 2))
+    for i in range(len(inc)):
+        out[i, 0], out[i, 1] = np.cos(inc[i, 2]), np.sin(inc[i, 2])
+    return out
 
 
 @kernel
-def _carry(pose: Array, cov: Array, moved: Array, lo: int, hi: int, carried: Array,
-           lin: Array) -> Array:
-    """``S = Σ Aᵢ Σᵢ Aᵢᵀ`` over increments ``lo:hi`` at the walked ``pose``, ``Aᵢ =
-    Ad(P_end⁻¹ Pᵢ)``: ``Aᵢ Σᵢ`` into ``carried[i]`` and ``Σ Aᵢ δᵢ`` (``moved``) taken from
-    ``lin``; a step of :func:`fill` then moves the increments by ``δᵢ = −(Aᵢ Σᵢ)ᵀ S⁻¹ lin``.
-    The 3×3 products by hand: a BLAS call per block costs more than the block."""
+def _walk_chain(start: Array, inc: Array, inc_trig: Array, moved: Array, lo: int, hi: int,
+                out: Array, trig: Array) -> None:
+    """Dead reckoning from ``start`` along ``inc ⊕ moved`` over increments ``lo:hi``: the
+    world ``(x, y, yaw)`` of each (yaw unwrapped) in ``out`` and its yaw's cosine and sine
+    in ``trig``; ``inc_trig``: :func:`_yaw_trig` of ``inc`` (the walks of one chain's steps
+    share it, and :func:`_carry` takes each pose's from ``trig``: the sines and cosines were
+    most of a fill's time)."""
+    x, y, yaw = start[0], start[1], start[2]
+    ch, sh = np.cos(yaw), np.sin(yaw)
+    for i in range(lo, hi):
+        c, s = inc_trig[i, 0], inc_trig[i, 1]
+        dx = inc[i, 0] + c * moved[i, 0] - s * moved[i, 1]
+        dy = inc[i, 1] + s * moved[i, 0] + c * moved[i, 1]
+        x += ch * dx - sh * dy
+        y += sh * dx + ch * dy
+        yaw += inc[i, 2] + moved[i, 2]
+        ch, sh = np.cos(yaw), np.sin(yaw)
+        out[i, 0], out[i, 1], out[i, 2] = x, y, yaw
+        trig[i, 0], trig[i, 1] = ch, sh
+
+
+@kernel
+def _carry(pose: Array, trig: Array, cov: Array, moved: Array, lo: int, hi: int,
+           carried: Array, lin: Array) -> Array:
+    """``S = Σ Aᵢ Σᵢ Aᵢᵀ`` over increments ``lo:hi`` at the walked ``pose`` (its yaws' cosines
+    and sines ``trig``), ``Aᵢ = Ad(P_end⁻¹ Pᵢ)``: ``Aᵢ Σᵢ`` into ``carried[i]`` and
+    ``Σ Aᵢ δᵢ`` (``moved``) taken from ``lin``; a step of :func:`fill` then moves the
+    increments by ``δᵢ = −(Aᵢ Σᵢ)ᵀ S⁻¹ lin``. The 3×3 products by hand: a BLAS call per
+    block costs more than the block."""
     end = hi - 1
-    ce, se = np.cos(pose[end, 2]), np.sin(pose[end, 2])
+    ce, se = trig[end, 0], trig[end, 1]
     S = np.zeros((3, 3))
     a = np.zeros((3, 3))
     a[2, 2] = 1.0
     for i in range(lo, hi):
         dx, dy = pose[i, 0] - pose[end, 0], pose[i, 1] - pose[end, 1]
-        turn = pose[i, 2] - pose[end, 2]
-        a[0, 0], a[0, 1], a[0, 2] = np.cos(turn), -np.sin(turn), -se * dx + ce * dy
-        a[1, 0], a[1, 1], a[1, 2] = np.sin(turn), np.cos(turn), -(ce * dx + se * dy)
+        # cos and sin of the turn pose[i, 2] - pose[end, 2]
+        ct = trig[i, 0] * ce + trig[i, 1] * se
+        st = trig[i, 1] * ce - trig[i, 0] * se
+        a[0, 0], a[0, 1], a[0, 2] = ct, -st, -se * dx + ce * dy
+        a[1, 0], a[1, 1], a[1, 2] = st, ct, -(ce * dx + se * dy)
         ac = carried[i]
         for r in range(3):
             lin[r] -= a[r, 0] * moved[i, 0] + a[r, 1] * moved[i, 1] + a[r, 2] * moved[i, 2]
@@ -285,15 +304,36 @@ def _carry(pose: Array, cov: Array, moved: Array, lo: int, hi: int, carried: Arr
 def perturbations(pose: Array, lo: int, inc: Array) -> Array:
     """The right perturbations ``δ`` that turn the increments ``inc`` into the increments of
     ``pose`` (rows by node) after ``lo``: ``inc ⊕ δ = pose[i−1]⁻¹ pose[i]``."""
-    return geo.planar_between(inc, geo.planar_between(pose[lo:-1], pose[lo + 1:]))
+    out = np.empty((len(inc), 3))
+    _perturbations(np.ascontiguousarray(pose, dtype=float), int(lo),
+                   np.ascontiguousarray(inc, dtype=float), out)
+    return out
+
+
+@kernel
+def _perturbations(pose: Array, lo: int, inc: Array, out: Array) -> None:
+    # Compiled: numpy's two between-compositions of kitti_00's last loop took 0.5 ms of a
+    # condensed solve that has to fit a callback.
+    for i in range(len(inc)):
+        p, q = pose[lo + i], pose[lo + i + 1]
+        cp, sp = np.cos(p[2]), np.sin(p[2])
+        dx, dy = q[0] - p[0], q[1] - p[1]
+        rx, ry = cp * dx + sp * dy - inc[i, 0], -sp * dx + cp * dy - inc[i, 1]
+        ci, si = np.cos(inc[i, 2]), np.sin(inc[i, 2])
+        out[i, 0], out[i, 1] = ci * rx + si * ry, -si * rx + ci * ry
+        out[i, 2] = _wrapped(q[2] - p[2] - inc[i, 2])
 
 
 def planar_chi2(a: np.ndarray, b: np.ndarray, meas: Array, info: Array, weight: Array,
-                pose: Array) -> float:
+                pose: Array, rows: np.ndarray | None = None) -> float:
     """``Σ wᵢ eᵢᵀ Ωᵢ eᵢ`` of planar relative edges ``a → b`` at world ``(x, y, yaw)`` rows
     ``pose``, ``e = meas⁻¹ (pose_a⁻¹ pose_b)``: a loop closure's correction scores thousands
-    of edges several times inside a callback (numpy: 1 ms on kitti_00's last loop)."""
-    return float(_planar_chi2(np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64),
+    of edges several times inside a callback (numpy: 1 ms on kitti_00's last loop).
+    ``rows``: the edges (rows of the arrays) summed; ``None``: all of them (the arrays'
+    rows gathered per call cost more than the sum on kitti_00's last loop)."""
+    rows = np.arange(len(a)) if rows is None else np.asarray(rows, dtype=np.int64)
+    return float(_planar_chi2(rows, np.asarray(a, dtype=np.int64),
+                              np.asarray(b, dtype=np.int64),
                               np.ascontiguousarray(meas, dtype=float),
                               np.ascontiguousarray(info, dtype=float),
                               np.ascontiguousarray(weight, dtype=float),
@@ -301,11 +341,11 @@ def planar_chi2(a: np.ndarray, b: np.ndarray, meas: Array, info: Array, weight: 
 
 
 @kernel
-def _planar_chi2(a: np.ndarray, b: np.ndarray, meas: Array, info: Array, weight: Array,
-                 pose: Array) -> float:
+def _planar_chi2(rows: np.ndarray, a: np.ndarray, b: np.ndarray, meas: Array, info: Array,
+                 weight: Array, pose: Array) -> float:
     total = 0.0
     e = np.empty(3)
-    for m in range(len(a)):
+    for m in rows:
         i, j = a[m], b[m]
         ca, sa = np.cos(pose[i, 2]), np.sin(pose[i, 2])
         dx, dy = pose[j, 0] - pose[i, 0], pose[j, 1] - pose[i, 1]
@@ -399,38 +439,12 @@ class _Pattern:
         var[free] = np.arange(len(free))
         self.c, self.n = c, c * len(free)
         self.var_a, self.var_b = var[a], var[b]
-        cells = np.arange(c)
-        rows, cols, blocks = [], [], []
-        for p, q in ((0, 0), (0, 1), (1, 0), (1, 1)):
-            vp, vq = (self.var_a, self.var_b)[p], (self.var_a, self.var_b)[q]
-            both = (vp >= 0) & (vq >= 0)
-            r = (c * vp[both])[:, None, None] + cells[None, :, None]
-            k = (c * vq[both])[:, None, None] + cells[None, None, :]
-            r, k = np.broadcast_to(r, (len(r), c, c)).ravel(), np.broadcast_to(
-                k, (len(k), c, c)).ravel()
-            upper_half = r <= k
-            blocks.append((p, q, both, upper_half))
-            rows.append(r[upper_half])
-            cols.append(k[upper_half])
-        diag = np.arange(self.n)
-        key = np.concatenate(cols + [diag]) * self.n + np.concatenate(rows + [diag])
-        unique, where = np.unique(key, return_inverse=True)
-        self.diag = where[-self.n:]
         # Each edge's block entry's place in the factor's values (-1: a held end, or below
         # the diagonal), so that a step sums its blocks in one compiled pass.
         self.slots = np.full((len(a), 2, 2, c, c), -1, dtype=np.int64)
-        done = 0
-        for p, q, both, upper_half in blocks:
-            block = np.full((int(np.count_nonzero(both)), c, c), -1, dtype=np.int64)
-            flat = block.reshape(-1)
-            count = int(np.count_nonzero(upper_half))
-            flat[upper_half] = where[done:done + count]
-            done += count
-            self.slots[both, p, q] = block
-        indices = unique % self.n
-        indptr = np.concatenate([[0], np.cumsum(np.bincount(unique // self.n,
-                                                            minlength=self.n))])
-        self.nnz = len(unique)
+        self.diag = np.empty(self.n, dtype=np.int64)
+        indptr, indices = _pattern(self.var_a, self.var_b, len(free), self.slots, self.diag)
+        self.nnz = len(indices)
         self.factor = SPDFactor(indptr, indices)
 
     def solve(self, Ja: Array, Jb: Array, info: Array, err: Array, damping: float,
@@ -445,6 +459,62 @@ class _Pattern:
         if held:
             data[self.diag.reshape(-1, self.c)[:, held]] = 1.0
         return self.factor.solve(data, -g)
+
+
+@kernel
+def _pattern(var_a: np.ndarray, var_b: np.ndarray, free: int, slots: np.ndarray,
+             diag: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The upper triangle of ``JᵀΩJ`` (every edge's blocks between free ends, and the whole
+    diagonal) in CSC, ``(indptr, indices)``, and each edge's block entries' place in it
+    (``slots``, left at -1 where an end is held or the entry is below the diagonal) and each
+    diagonal entry's (``diag``). Built block by block: with ``c`` unknowns a node, scalar
+    column ``c·v + j`` holds ``c`` rows of each block above the diagonal in block column
+    ``v``, then rows ``0 … j`` of the diagonal block. Compiled: numpy's twenty calls took
+    0.6-0.9 ms of a condensed solve that has to fit a callback."""
+    c = slots.shape[3]
+    blocks = np.empty(len(var_a) + free, dtype=np.int64)
+    count = 0
+    for e in range(len(var_a)):
+        u, v = min(var_a[e], var_b[e]), max(var_a[e], var_b[e])
+        if u >= 0 and u != v:
+            blocks[count] = v * free + u
+            count += 1
+    for v in range(free):
+        blocks[count] = v * free + v
+        count += 1
+    blocks = np.unique(blocks[:count])  # block column-major: CSC order
+    first = np.zeros(free + 1, dtype=np.int64)  # each block column's first block
+    for key in blocks:
+        first[key // free + 1] += 1
+    for v in range(free):
+        first[v + 1] += first[v]
+    indptr = np.zeros(c * free + 1, dtype=np.int64)
+    for v in range(free):
+        above = first[v + 1] - first[v] - 1
+        for j in range(c):
+            indptr[c * v + j + 1] = indptr[c * v + j] + c * above + j + 1
+    indices = np.empty(indptr[-1], dtype=np.int64)
+    for v in range(free):
+        for j in range(c):
+            at = indptr[c * v + j]
+            for key in blocks[first[v]:first[v + 1]]:
+                u = key % free
+                for i in range(c if u != v else j + 1):
+                    indices[at] = c * u + i
+                    at += 1
+            diag[c * v + j] = at - 1
+    for e in range(len(var_a)):
+        for p in range(2):
+            vp = var_a[e] if p == 0 else var_b[e]
+            for q in range(2):
+                vq = var_a[e] if q == 0 else var_b[e]
+                if vp < 0 or vq < 0 or vp > vq:
+                    continue
+                place = np.searchsorted(blocks, vq * free + vp) - first[vq]
+                for j in range(c):
+                    for i in range(c if vp != vq else j + 1):
+                        slots[e, p, q, i, j] = indptr[c * vq + j] + c * place + i
+    return indptr, indices
 
 
 @kernel

@@ -29,7 +29,7 @@ import numpy as np
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.compiled import kernel
-from h2o_slam.core.condensed import _inverse3, _solve3, _walk_chain, _wrapped
+from h2o_slam.core.condensed import _inverse3, _solve3, _walk_chain, _wrapped, _yaw_trig
 from h2o_slam.core.exact import (
     MAX_DAMPING,
     ExactSystem,
@@ -180,10 +180,11 @@ def _spread_planar_chain(first: Array, d: Array, meas: Array, info: Array,
     pose[0] = first
     A = np.empty((k, 3, 3))
     MC = np.empty((k, 3, 3))
+    d_trig, trig = _yaw_trig(d), np.empty((k, 2))
     for _ in range(steps):
-        _walk_chain(first, d, moved, 0, k, pose[1:])
+        _walk_chain(first, d, d_trig, moved, 0, k, pose[1:], trig)
         _planar_step(pose, reverse, meas, cov, cov_closure, moved, A, MC)
-    _walk_chain(first, d, moved, 0, k, pose[1:])
+    _walk_chain(first, d, d_trig, moved, 0, k, pose[1:], trig)
     return pose
 
 

@@ -1036,8 +1036,8 @@ CONDENSE_SHARE = 4
 def _planar_chi2(solver: H2OSolver, edges: np.ndarray, pose: Array) -> float:
     """Σ wᵢ χ²ᵢ over a planar solver's relative ``edges`` at world ``(x, y, yaw)`` rows
     ``pose``: the condensed solve's check, from the edge table's planar copies."""
-    return planar_chi2(solver.a[edges], solver.b[edges], solver.planar_meas[edges],
-                       solver.planar_info[edges], solver.weight[edges], pose)
+    return planar_chi2(solver.a, solver.b, solver.planar_meas, solver.planar_info,
+                       solver.weight, pose, rows=edges)
 
 
 def _chi2_of(solver: H2OSolver, edge: int) -> float:
