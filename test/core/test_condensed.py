@@ -162,6 +162,35 @@ def test_a_closure_far_off_in_yaw_starts_from_the_rotations(monkeypatch) -> None
     assert _chi2(g, stalled) / best > 100.0
 
 
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 10_000))
+def test_the_sparse_step_is_the_dense_damped_gauss_newton_step(seed) -> None:
+    """The compiled pattern, its slots and the assembly against ``(JᵀΩJ + λ diag) δ = −JᵀΩe``
+    built densely: held ends, repeated and reversed edges, edges between held nodes."""
+    rng = np.random.default_rng(seed)
+    nodes, m = 12, 20
+    free = np.sort(rng.choice(nodes, 7, replace=False))
+    a, b = rng.integers(0, nodes, m), rng.integers(0, nodes, m)
+    a, b = np.append(a[a != b], free), np.append(b[a != b], (free + 1) % nodes)
+    Ja, Jb = rng.normal(size=(len(a), 3, 3)), rng.normal(size=(len(a), 3, 3))
+    L = rng.normal(size=(len(a), 3, 3))
+    info = L @ L.transpose(0, 2, 1) + np.eye(3)
+    err = rng.normal(size=(len(a), 3))
+    got = cd._Pattern(a, b, free, 3).solve(Ja, Jb, info, err, 0.1)
+
+    col = {node: i for i, node in enumerate(free)}
+    H, g = np.zeros((3 * len(free),) * 2), np.zeros(3 * len(free))
+    for e in range(len(a)):
+        J = np.zeros((3, 3 * len(free)))
+        for node, Jn in ((a[e], Ja[e]), (b[e], Jb[e])):
+            if node in col:
+                J[:, 3 * col[node]:3 * col[node] + 3] += Jn
+        H += J.T @ info[e] @ J
+        g += J.T @ info[e] @ err[e]
+    H[np.diag_indices_from(H)] *= 1.1
+    np.testing.assert_allclose(got, np.linalg.solve(H, -g), rtol=1e-7, atol=1e-9)
+
+
 def _dense_step(J_rows, err, info):
     """argmin Σ (e + J δ)ᵀ Ω (e + J δ) over the free unknowns, as one dense solve."""
     H = sum(J.T @ W @ J for J, W in zip(J_rows, info, strict=True))
