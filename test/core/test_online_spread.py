@@ -54,6 +54,25 @@ def test_a_loop_that_older_closures_cross_is_solved(planar: bool) -> None:
     assert solved < 1.01
 
 
+def test_a_queued_closure_far_off_is_updated_before_a_waiting_solution_is_merged() -> None:
+    """A solution older than a new closure far off waits for the closure's update (which
+    then marks it stale): merged first, it took the callback's time from that update."""
+    g = loop_graph(4, True, 120, reverse=False)
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(background="inline", spread_loops=False))
+    try:
+        older, closure = _older_solution_then_closure(h2o, g)
+        conv = h2o.converger
+        conv._merging, conv._cursor = older, 0  # noqa: SLF001 - a solution waiting
+        assert h2o._big_closure_queued()  # noqa: SLF001
+        merges, dropped = conv.state.merges, conv.state.dropped
+        h2o.step(0.5)
+        assert _chi2_of(h2o.solver, closure) < 10.0 and conv.state.merges == merges
+        h2o.step(0.5)
+        assert conv.state.dropped == dropped + 1  # stale: never merged
+    finally:
+        h2o.close()
+
+
 def test_a_merge_under_way_waits_out_the_step_that_corrects_a_big_closure() -> None:
     """A solution without the closure, half merged when the closure arrives: the step that
     corrects the closure does not finish that merge (the map keeps the correction); the next
