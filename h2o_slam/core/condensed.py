@@ -66,11 +66,10 @@ def _relative_jacobians(pose_a: Array, pose_b: Array, meas: Array, err: Array, J
         ca, sa = np.cos(pose_a[k, 2]), np.sin(pose_a[k, 2])
         cm, sm = np.cos(meas[k, 2]), np.sin(meas[k, 2])
         dx, dy = pose_b[k, 0] - pose_a[k, 0], pose_b[k, 1] - pose_a[k, 1]
-        # a⁻¹ b, then meas⁻¹ of it.
-        rx, ry = ca * dx + sa * dy, -sa * dx + ca * dy
-        ex, ey = rx - meas[k, 0], ry - meas[k, 1]
-        err[k, 0], err[k, 1] = cm * ex + sm * ey, -sm * ex + cm * ey
-        err[k, 2] = _wrapped(_wrapped(pose_b[k, 2] - pose_a[k, 2]) - meas[k, 2])
+        rx, ry, ryaw = _between(pose_a[k, 0], pose_a[k, 1], pose_a[k, 2],
+                                pose_b[k, 0], pose_b[k, 1], pose_b[k, 2])
+        err[k, 0], err[k, 1], err[k, 2] = _between(meas[k, 0], meas[k, 1], meas[k, 2],
+                                                   rx, ry, ryaw)
         # Rmᵀ Raᵀ = R(θa + θm)ᵀ on the translations, Rmᵀ (dRaᵀ/dθ) (t_b − t_a) on θa.
         c, s = np.cos(pose_a[k, 2] + meas[k, 2]), np.sin(pose_a[k, 2] + meas[k, 2])
         Jb[k, 0, 0], Jb[k, 0, 1], Jb[k, 1, 0], Jb[k, 1, 1], Jb[k, 2, 2] = c, s, -s, c, 1.0
@@ -210,6 +209,17 @@ def _wrapped(angle: float) -> float:
 
 
 @kernel
+def _between(a0: float, a1: float, a2: float, b0: float, b1: float, b2: float
+             ) -> tuple[float, float, float]:
+    """``a⁻¹ b`` for one pair of planar poses, as
+    :func:`~h2o_slam.core.geometry.planar_between`: the compiled loops' one composition
+    (an edge's error is ``_between(*meas, *_between(*a, *b))``)."""
+    c, s = np.cos(a2), np.sin(a2)
+    dx, dy = b0 - a0, b1 - a1
+    return c * dx + s * dy, -s * dx + c * dy, _wrapped(b2 - a2)
+
+
+@kernel
 def _inverse3(S: Array, out: Array) -> None:
     """``out = S⁻¹`` for a 3×3 ``S`` by its adjugate (no allocation; LAPACK's call per
     chain cost more)."""
@@ -316,12 +326,9 @@ def _perturbations(pose: Array, lo: int, inc: Array, out: Array) -> None:
     # condensed solve that has to fit a callback.
     for i in range(len(inc)):
         p, q = pose[lo + i], pose[lo + i + 1]
-        cp, sp = np.cos(p[2]), np.sin(p[2])
-        dx, dy = q[0] - p[0], q[1] - p[1]
-        rx, ry = cp * dx + sp * dy - inc[i, 0], -sp * dx + cp * dy - inc[i, 1]
-        ci, si = np.cos(inc[i, 2]), np.sin(inc[i, 2])
-        out[i, 0], out[i, 1] = ci * rx + si * ry, -si * rx + ci * ry
-        out[i, 2] = _wrapped(q[2] - p[2] - inc[i, 2])
+        rx, ry, ryaw = _between(p[0], p[1], p[2], q[0], q[1], q[2])
+        out[i, 0], out[i, 1], out[i, 2] = _between(inc[i, 0], inc[i, 1], inc[i, 2],
+                                                   rx, ry, ryaw)
 
 
 def planar_chi2(a: np.ndarray, b: np.ndarray, meas: Array, info: Array, weight: Array,
@@ -347,12 +354,9 @@ def _planar_chi2(rows: np.ndarray, a: np.ndarray, b: np.ndarray, meas: Array, in
     e = np.empty(3)
     for m in rows:
         i, j = a[m], b[m]
-        ca, sa = np.cos(pose[i, 2]), np.sin(pose[i, 2])
-        dx, dy = pose[j, 0] - pose[i, 0], pose[j, 1] - pose[i, 1]
-        rx, ry = ca * dx + sa * dy - meas[m, 0], -sa * dx + ca * dy - meas[m, 1]
-        cm, sm = np.cos(meas[m, 2]), np.sin(meas[m, 2])
-        e[0], e[1] = cm * rx + sm * ry, -sm * rx + cm * ry
-        e[2] = _wrapped(pose[j, 2] - pose[i, 2] - meas[m, 2])
+        rx, ry, ryaw = _between(pose[i, 0], pose[i, 1], pose[i, 2],
+                                pose[j, 0], pose[j, 1], pose[j, 2])
+        e[0], e[1], e[2] = _between(meas[m, 0], meas[m, 1], meas[m, 2], rx, ry, ryaw)
         quad = 0.0
         for r in range(3):
             for c in range(3):

@@ -29,7 +29,7 @@ import numpy as np
 
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.compiled import kernel
-from h2o_slam.core.condensed import _inverse3, _solve3, _walk_chain, _wrapped, _yaw_trig
+from h2o_slam.core.condensed import _between, _inverse3, _solve3, _walk_chain, _yaw_trig
 from h2o_slam.core.exact import (
     MAX_DAMPING,
     ExactSystem,
@@ -189,14 +189,6 @@ def _spread_planar_chain(first: Array, d: Array, meas: Array, info: Array,
 
 
 @kernel
-def _between(a0: float, a1: float, a2: float, b0: float, b1: float, b2: float) -> Array:
-    """``a⁻¹ b`` for planar poses, as :func:`~h2o_slam.core.geometry.planar_between`."""
-    c, s = np.cos(a2), np.sin(a2)
-    dx, dy = b0 - a0, b1 - a1
-    return np.array([c * dx + s * dy, -s * dx + c * dy, _wrapped(b2 - a2)])
-
-
-@kernel
 def _planar_step(pose: Array, reverse: bool, meas: Array, cov: Array, cov_closure: Array,
                  moved: Array, A: Array, MC: Array) -> None:
     """:func:`spread_step` in ``(x, y, yaw)`` on the chain's poses ``pose`` (first = lo):
@@ -207,7 +199,7 @@ def _planar_step(pose: Array, reverse: bool, meas: Array, cov: Array, cov_closur
         rel = _between(ex, ey, eyaw, pose[0, 0], pose[0, 1], pose[0, 2])
     else:
         rel = _between(pose[0, 0], pose[0, 1], pose[0, 2], ex, ey, eyaw)
-    e = _between(meas[0], meas[1], meas[2], rel[0], rel[1], rel[2])
+    e0, e1, e2 = _between(meas[0], meas[1], meas[2], rel[0], rel[1], rel[2])
     # The closure measures T_hi⁻¹ T_lo when reversed: −Ad(T_lo⁻¹ T_hi) first.
     flip = np.eye(3)
     if reverse:
@@ -217,7 +209,8 @@ def _planar_step(pose: Array, reverse: bool, meas: Array, cov: Array, cov_closur
         flip[1, 0], flip[1, 1], flip[1, 2] = -sp, -cp, p[0]
         flip[2, 2] = -1.0
     S = cov_closure.copy()
-    rhs = e.copy()
+    rhs = np.empty(3)
+    rhs[0], rhs[1], rhs[2] = e0, e1, e2
     c, s = np.cos(eyaw), np.sin(eyaw)
     ad = np.zeros((3, 3))
     ad[2, 2] = 1.0
