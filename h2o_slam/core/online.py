@@ -851,9 +851,9 @@ class OnlineH2O:
         moves did not fall. False, doing nothing, when neither is predicted to fit before
         ``deadline`` (counted ``late``)."""
         solver = self.solver
-        a, b = int(solver.a[edge]), int(solver.b[edge])
-        if solver.kind[edge] != EdgeKind.RELATIVE or abs(a - b) < 2 or solver.weight[edge] <= 0:
+        if not _live_closure(solver, edge):
             return True
+        a, b = int(solver.a[edge]), int(solver.b[edge])
         chi2_before = _chi2_of(solver, edge)
         if chi2_before < SPREAD_MIN_CHI2:
             return True  # the tree path's update is enough
@@ -867,22 +867,20 @@ class OnlineH2O:
         :meth:`_mark_big` calls big: merging a solution older than it first took the
         step's time from its update (manhattan, two closures with χ² 3.7·10⁴ and 3.9·10⁵
         waited a callback behind a merge slice of 2,690 nodes: r 162 after it)."""
-        s = self.solver
-        big = max(BIG_CORRECTION_CHI2, self._converged_chi2())
-        for edge in itertools.islice(self.pending, look):
-            if (s.kind[edge] == EdgeKind.RELATIVE and abs(int(s.a[edge]) - int(s.b[edge])) > 1
-                    and s.weight[edge] > 0.0 and _chi2_of(s, edge) > big):
-                return True
-        return False
+        s, big = self.solver, self._big_chi2()
+        return any(_live_closure(s, edge) and _chi2_of(s, edge) > big
+                   for edge in itertools.islice(self.pending, look))
 
-    def _converged_chi2(self) -> float:
+    def _big_chi2(self) -> float:
+        """A closure's χ² above which it is far off: above :data:`BIG_CORRECTION_CHI2` and
+        the map's converged χ²."""
         ref = self.converger.state.converged_chi2
-        return ref if math.isfinite(ref) else 0.0
+        return max(BIG_CORRECTION_CHI2, ref if math.isfinite(ref) else 0.0)
 
     def _mark_big(self, edge: int, chi2_before: float) -> None:
         """A closure whose first correction took its χ² down from more than the whole map's
         (converged) χ²: a solution solved without it must not be merged over it."""
-        if chi2_before > max(BIG_CORRECTION_CHI2, self._converged_chi2()):
+        if chi2_before > self._big_chi2():
             self.converger.stale(edge + 1)
             # And a merge under way waits for the next step, which corrects it again.
             self._corrected = max(self._corrected, edge + 1)
@@ -1056,6 +1054,14 @@ def _planar_chi2(solver: H2OSolver, edges: np.ndarray, pose: Array) -> float:
     ``pose``: the condensed solve's check, from the edge table's planar copies."""
     return planar_chi2(solver.a, solver.b, solver.planar_meas, solver.planar_info,
                        solver.weight, pose, rows=edges)
+
+
+def _live_closure(solver: H2OSolver, edge: int) -> bool:
+    """``edge`` is a loop closure (a relative edge between poses not in sequence) that is
+    not dropped as an outlier."""
+    return bool(solver.kind[edge] == EdgeKind.RELATIVE
+                and abs(int(solver.a[edge]) - int(solver.b[edge])) > 1
+                and solver.weight[edge] > 0.0)
 
 
 def _chi2_of(solver: H2OSolver, edge: int) -> float:
