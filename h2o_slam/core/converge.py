@@ -457,16 +457,64 @@ def merge_solution(tree: PoseTree, sol: Solution, lo: int, hi: int) -> None:
     poses; a top gets its solved pose; a node hung (since the snapshot) under a newer node
     keeps its local transform, as every node added after the snapshot does.
     """
-    idx = np.arange(lo, hi)
-    parent = tree.parent[idx]
+    _write_locals(tree, sol, np.arange(lo, hi))
+
+
+def _write_locals(tree: PoseTree, sol: Solution, idx: np.ndarray) -> None:
+    placed, R, t = solved_locals(tree.parent[idx], sol, idx)
+    tree.R[idx[placed]] = R
+    tree.t[idx[placed]] = t
+
+
+def solved_locals(parent: np.ndarray, sol: Solution, idx: np.ndarray
+                  ) -> tuple[np.ndarray, Array, Array]:
+    """The local transforms the solution gives the snapshot nodes ``idx`` under ``parent``
+    (theirs): which of them it places (tops, and children of snapshot nodes) and, for
+    those, the transforms (:func:`merge_solution`)."""
     top = parent == EARTH
-    inside = ~top & (parent < sol.nodes)
-    tree.R[idx[top]] = geo.renormalize(sol.R[idx[top]])
-    tree.t[idx[top]] = sol.t[idx[top]]
-    i, p = idx[inside], parent[inside]
-    R_loc, t_loc = geo.between(sol.R[p], sol.t[p], sol.R[i], sol.t[i])
-    tree.R[i] = geo.renormalize(R_loc)
-    tree.t[i] = t_loc
+    placed = top | (parent < sol.nodes)
+    i, p, top = idx[placed], parent[placed], top[placed]
+    R = np.empty((len(i), 3, 3))
+    t = np.empty((len(i), 3))
+    R[top], t[top] = sol.R[i[top]], sol.t[i[top]]
+    R[~top], t[~top] = geo.between(sol.R[p[~top]], sol.t[p[~top]], sol.R[i[~top]],
+                                   sol.t[i[~top]])
+    return placed, geo.renormalize(R), t
+
+
+class StagedMerge:
+    """A solution's local transforms, computed in slices beside the live tree and written
+    into it at once (:meth:`commit`): a map left half merged at a callback's end is part
+    solution, part the poses from before, neither of which its edges agree with (manhattan:
+    χ² 15.7 times the optimum after a callback that ended with 2,426 of 4,253 nodes
+    merged)."""
+
+    def __init__(self, sol: Solution) -> None:
+        self.sol = sol
+        self.parent = np.empty(sol.nodes, dtype=np.int64)
+        self.placed = np.zeros(sol.nodes, dtype=bool)
+        self.R = np.empty((sol.nodes, 3, 3))
+        self.t = np.empty((sol.nodes, 3))
+
+    def stage(self, tree_parent: np.ndarray, lo: int, hi: int) -> None:
+        """The local transforms of snapshot nodes ``lo … hi-1`` under their parents now."""
+        idx = np.arange(lo, hi)
+        self.parent[lo:hi] = tree_parent[lo:hi]
+        placed, R, t = solved_locals(self.parent[lo:hi], self.sol, idx)
+        self.placed[lo:hi] = placed
+        self.R[idx[placed]], self.t[idx[placed]] = R, t
+
+    def commit(self, tree: PoseTree) -> None:
+        """Write the staged transforms into ``tree``; nodes re-parented since they were
+        staged (a rebalancing between slices) get theirs under the new parent."""
+        n = self.sol.nodes
+        same = tree.parent[:n] == self.parent
+        keep = same & self.placed
+        tree.R[:n][keep] = self.R[keep]
+        tree.t[:n][keep] = self.t[keep]
+        moved = np.flatnonzero(~same)
+        if len(moved):
+            _write_locals(tree, self.sol, moved)
 
 
 class LiveIterations:
@@ -612,7 +660,8 @@ class Converger:
         self._written = 0  # edges written to the worker's shared file
         self._failed_at = -1  # edges when the last solve failed: retried once more arrive
         self._merging: Solution | None = None
-        self._cursor = 0
+        self._staged: StagedMerge | None = None  # its local transforms so far
+        self._cursor = 0  # nodes of it staged
         #: A solution of fewer edges than this is dropped, unless its merge has begun: it
         #: was solved without a closure whose first correction it would undo (:meth:`stale`).
         self._stale_before = 0
@@ -834,8 +883,9 @@ class Converger:
         if sol.generation != self.generation or (self._cursor == 0
                                                  and sol.edges < self._stale_before):
             self.state.dropped += 1
-            self._merging = None
+            self._merging = self._staged = None
             return None
+        staged = self._staged_for(sol)
         while self._cursor < sol.nodes:
             c0, c1 = self.merge_cost.coef
             room = (deadline - clock()) / self.merge_cost.margin(safety) - c0
@@ -845,16 +895,26 @@ class Converger:
                 return None  # slices too small cost more in overhead than they move
             begin = clock()
             hi = min(sol.nodes, self._cursor + count)
-            merge_solution(self.solver.tree, sol, self._cursor, hi)
+            staged.stage(self.solver.tree.parent, self._cursor, hi)
+            if hi == sol.nodes:
+                # The last slice pays the copy into the tree: a node's share is a few
+                # percent of its staging.
+                staged.commit(self.solver.tree)
             self.merge_cost.update(clock() - begin, hi - self._cursor)
             self._cursor = hi
-        self._merging = None
+        self._merging = self._staged = None
         state = self.state
         state.merges += 1
         state.solution_edges = sol.edges
         if sol.converged:
             state.converged_edges, state.converged_chi2 = sol.edges, sol.chi2
         return sol
+
+    def _staged_for(self, sol: Solution) -> StagedMerge:
+        """The staging of ``sol``'s merge, begun afresh when it is not the one under way."""
+        if self._staged is None or self._staged.sol is not sol:
+            self._staged, self._cursor = StagedMerge(sol), 0
+        return self._staged
 
     def solve_now(self, clock: Any) -> Solution | None:
         """Solve inline and merge whole, dropping any solution still under way (it is older).
@@ -863,7 +923,7 @@ class Converger:
 
         Returns the merged solution (None without edges, or when the solve failed)."""
         self.generation += 1
-        self._merging = None
+        self._merging = self._staged = None
         if self.solver.num_edges == 0:
             return None
         self._solve_inline(clock, self.iterations, regraduate=True)

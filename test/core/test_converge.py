@@ -14,7 +14,13 @@ import numpy as np
 import pytest
 
 from h2o_slam.core import geometry as geo
-from h2o_slam.core.converge import ExactProblem, LiveIterations, Solution, merge_solution
+from h2o_slam.core.converge import (
+    ExactProblem,
+    LiveIterations,
+    Solution,
+    StagedMerge,
+    merge_solution,
+)
 from h2o_slam.core.exact import converge_exact
 from h2o_slam.core.graph import chi2
 from h2o_slam.core.modes import (
@@ -146,6 +152,35 @@ def test_merging_keeps_nodes_added_after_the_snapshot_at_their_tree_pose(city, s
     parent = tree.parent[later]
     R_rel, t_rel = geo.between(R_w[parent], t_w[parent], R_w[later], t_w[later])
     np.testing.assert_allclose(t_rel, t_before, atol=1e-9)
+
+
+def test_a_staged_merge_leaves_the_map_alone_until_it_is_whole(city):
+    """Slices staged beside the tree change no pose; the commit writes the whole solution,
+    also for a node re-parented between its slice and the commit, and nodes added after
+    the snapshot keep their local transforms."""
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(background="off", balance=False))
+    _feed(h2o, city, 60, None)
+    sol = _solve_snapshot(h2o, city)
+    _feed_from(h2o, city, 60, 90)
+    tree = h2o.solver.tree
+    R_live, t_live = h2o.solver.world_poses()
+    staged = StagedMerge(sol)
+    staged.stage(tree.parent, 0, 30)
+    node, parent = 20, 5  # re-parented after its slice, keeping its world pose
+    R_loc, t_loc = geo.between(R_live[parent], t_live[parent], R_live[node], t_live[node])
+    tree.reparent(node, parent, R_loc, t_loc)
+    staged.stage(tree.parent, 30, sol.nodes)
+    R_w, t_w = h2o.solver.world_poses()
+    np.testing.assert_allclose(t_w, t_live, atol=1e-12)
+    np.testing.assert_allclose(R_w, R_live, atol=1e-12)
+    later = np.arange(60, 90)
+    R_before, t_before = tree.R[later].copy(), tree.t[later].copy()
+    staged.commit(tree)
+    R_w, t_w = h2o.solver.world_poses()
+    np.testing.assert_allclose(t_w[:60], sol.t, atol=1e-9)
+    np.testing.assert_allclose(R_w[:60], sol.R, atol=1e-9)
+    np.testing.assert_array_equal(tree.R[later], R_before)
+    np.testing.assert_array_equal(tree.t[later], t_before)
 
 
 def _feed_from(h2o: OnlineH2O, graph, first: int, last: int) -> None:

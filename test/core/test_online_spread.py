@@ -83,8 +83,9 @@ def test_a_merge_under_way_waits_out_the_step_that_corrects_a_big_closure() -> N
         older, closure = _older_solution_then_closure(h2o, g)
         conv = h2o.converger
         half = older.nodes // 2
-        merge_solution(h2o.solver.tree, older, 0, half)
-        conv._merging, conv._cursor = older, half  # noqa: SLF001 - a merge under way
+        conv._merging = older  # noqa: SLF001 - a merge under way: half of it staged
+        conv._staged_for(older).stage(h2o.solver.tree.parent, 0, half)  # noqa: SLF001
+        conv._cursor = half  # noqa: SLF001
         h2o._corrected = 0  # noqa: SLF001 - what a step starts with
         raw = _chi2_of(h2o.solver, closure)
         h2o._relax_new(float("inf"), StepReport())  # noqa: SLF001 - the closure's update
