@@ -505,16 +505,28 @@ class StagedMerge:
         self.R[idx[placed]], self.t[idx[placed]] = R, t
 
     def commit(self, tree: PoseTree) -> None:
-        """Write the staged transforms into ``tree``; nodes re-parented since they were
-        staged (a rebalancing between slices) get theirs under the new parent."""
+        """Write the staged transforms into ``tree``: every snapshot node at its solved
+        pose. Nodes re-parented since they were staged, and nodes hung under a node newer
+        than the snapshot (by a rebalancing), get theirs under the parent they have now;
+        newer nodes keep their local transforms."""
         n = self.sol.nodes
-        same = tree.parent[:n] == self.parent
-        keep = same & self.placed
+        keep = (tree.parent[:n] == self.parent) & self.placed
         tree.R[:n][keep] = self.R[keep]
         tree.t[:n][keep] = self.t[keep]
-        moved = np.flatnonzero(~same)
-        if len(moved):
-            _write_locals(tree, self.sol, moved)
+        rest = np.flatnonzero(~keep)
+        if not len(rest):
+            return
+        # Where every pose will be: the snapshot's solved, the newer ones under their parents.
+        R = np.empty((tree.n, 3, 3))
+        t = np.empty((tree.n, 3))
+        R[:n], t[:n] = self.sol.R, self.sol.t
+        tree.compose_below(R, t, n)
+        parent = tree.parent[rest]
+        top = parent == EARTH
+        under = np.where(top, 0, parent)
+        R_loc, t_loc = geo.between(R[under], t[under], R[rest], t[rest])
+        tree.R[rest] = geo.renormalize(np.where(top[:, None, None], R[rest], R_loc))
+        tree.t[rest] = np.where(top[:, None], t[rest], t_loc)
 
 
 class LiveIterations:

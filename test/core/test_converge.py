@@ -155,21 +155,28 @@ def test_merging_keeps_nodes_added_after_the_snapshot_at_their_tree_pose(city, s
 
 
 def test_a_staged_merge_leaves_the_map_alone_until_it_is_whole(city):
-    """Slices staged beside the tree change no pose; the commit writes the whole solution,
-    also for a node re-parented between its slice and the commit, and nodes added after
-    the snapshot keep their local transforms."""
+    """Slices staged beside the tree change no pose; the commit puts every snapshot node
+    at its solved pose, also nodes re-parented between their slice and the commit and
+    nodes hung under newer ones, and nodes added after the snapshot keep their local
+    transforms."""
     h2o = OnlineH2O(planar=True, online=OnlineConfig(background="off", balance=False))
     _feed(h2o, city, 60, None)
     sol = _solve_snapshot(h2o, city)
     _feed_from(h2o, city, 60, 90)
     tree = h2o.solver.tree
     R_live, t_live = h2o.solver.world_poses()
+
+    def hang(node: int, parent: int) -> None:  # as a rebalancing: the world pose kept
+        R_loc, t_loc = geo.between(R_live[parent], t_live[parent], R_live[node], t_live[node])
+        tree.reparent(node, parent, R_loc, t_loc)
+
     staged = StagedMerge(sol)
     staged.stage(tree.parent, 0, 30)
-    node, parent = 20, 5  # re-parented after its slice, keeping its world pose
-    R_loc, t_loc = geo.between(R_live[parent], t_live[parent], R_live[node], t_live[node])
-    tree.reparent(node, parent, R_loc, t_loc)
+    hang(20, 5)  # after its slice
+    hang(85, 10)  # a newer node, then an older one hung under it with its subtree
+    hang(40, 85)
     staged.stage(tree.parent, 30, sol.nodes)
+    hang(25, 87)  # after its slice, under a newer node
     R_w, t_w = h2o.solver.world_poses()
     np.testing.assert_allclose(t_w, t_live, atol=1e-12)
     np.testing.assert_allclose(R_w, R_live, atol=1e-12)
