@@ -53,6 +53,25 @@ def adjoint(R: Array, t: Array) -> Array:
     return out
 
 
+def closure_moved(C_R: Array, C_t: Array, meas_R: Array, meas_t: Array, info: Array,
+                  forward: bool) -> tuple[Array, Array, Array]:
+    """A closure between poses ``lo`` and ``hi`` rewritten as one between pose ``k`` and
+    ``hi``, for ``T_lo`` and ``T_k`` held with ``T_lo⁻¹ T_k = C``: its measurement and
+    information such that its χ² is the original's at every ``T_hi``. ``forward``: the
+    closure is ``lo → hi`` (its error unchanged); else ``hi → lo`` and the result ``hi → k``,
+    whose error is the original's conjugated by ``C`` (``Ad(C⁻¹) e`` to first order: the
+    rotation's part exactly, the translation's up to ``(R_E − I − [ω]ₓ) C_t``)."""
+    if forward:
+        # (C⁻¹ Z)⁻¹ T_k⁻¹ T_hi = Z⁻¹ T_lo⁻¹ T_hi: the same error.
+        C_inv_R, C_inv_t = geo.inverse(C_R, C_t)
+        R, t = geo.compose(C_inv_R, C_inv_t, meas_R, meas_t)
+        return R, t, info
+    # (Z C)⁻¹ T_hi⁻¹ T_k = C⁻¹ (Z⁻¹ T_hi⁻¹ T_lo) C: the error Ad(C⁻¹) e.
+    R, t = geo.compose(meas_R, meas_t, C_R, C_t)
+    Ad = adjoint(C_R, C_t)
+    return R, t, Ad.T @ info @ Ad
+
+
 def closure_error(R: Array, t: Array, a: int, b: int, meas_R: Array, meas_t: Array) -> Array:
     """The closure's error ``[t_E; Log R_E]`` of ``Z⁻¹ T_a⁻¹ T_b`` at world poses ``(R, t)``."""
     return geo.relative_error(R[a], t[a], R[b], t[b], meas_R, meas_t)

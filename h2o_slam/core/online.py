@@ -43,7 +43,7 @@ from h2o_slam.core.errors import GraphError
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, edge_chi2
 from h2o_slam.core.heap import keep_freed_memory
-from h2o_slam.core.loop_spread import LoopSolve, spread_loop
+from h2o_slam.core.loop_spread import LoopSolve, closure_moved, spread_loop
 from h2o_slam.core.robust import RobustConfig
 from h2o_slam.core.solver import H2OSolver, SolverConfig
 from h2o_slam.core.timing import CostModel, UpdateCost
@@ -57,6 +57,9 @@ SPREAD_MIN_CHI2 = 10.0
 #: χ² of a closure before its first correction above which (and above the map's own) a
 #: solution without it is dropped rather than merged (:meth:`Converger.stale`).
 BIG_CORRECTION_CHI2 = 100.0
+#: Fewest poses after the newest tie inside a crossed loop for its tail to take the closure's
+#: correction (:meth:`OnlineH2O._spread_tail`).
+TAIL_MIN_POSES = 3
 #: Most closures newer than a merged solution looked at again, the newest (a worker far
 #: behind leaves thousands; each look is a residual inside a callback's budget: with 32,
 #: intel's merges spent up to 1.2 ms on it, p99 0.24 ms, and queued none again).
@@ -972,16 +975,61 @@ class OnlineH2O:
         return bool(np.any(inside & (s.weight[:m] > 0.0)))
 
     def _spread_chain(self, edge: int, lo: int, hi: int, deadline: float) -> bool:
-        """The spread of ``edge`` along its odometry chain (see :meth:`_spread`)."""
+        """The spread of ``edge`` along its odometry chain (see :meth:`_spread`); where
+        other edges end inside the loop, along the chain after the newest of them
+        (:meth:`_spread_tail`)."""
         solver = self.solver
-        a, b = int(solver.a[edge]), int(solver.b[edge])
         chain = self._odometry_edge[lo + 1: hi + 1]
         if len(chain) < hi - lo or np.any(chain < 0):
             return True
-        m = solver.num_edges
         if self._crossed(edge, lo, hi):
             self.spreads["crossed"] += 1
+            return self._spread_tail(edge, lo, hi, deadline)
+        return self._spread_along(edge, int(solver.a[edge]), int(solver.b[edge]),
+                                  solver.meas_R[edge], solver.meas_t[edge], solver.info[edge],
+                                  deadline, "kept")
+
+    def _spread_tail(self, edge: int, lo: int, hi: int, deadline: float) -> bool:
+        """A closure across older ones spread over the poses after the newest pose another
+        edge ties, the rest of the map held: with ``lo`` and that pose fixed, the closure is
+        one between that pose and ``hi`` (:func:`~h2o_slam.core.loop_spread.closure_moved`),
+        and the stretch after it, which nothing else holds, takes the correction
+        that the map, stiffened by the closures inside the loop, mostly does not (manhattan,
+        the first closure of a revisit 3,000 poses back: the tree path's short update left
+        46 times the optimum's χ² for seven callbacks, until a background solution)."""
+        solver = self.solver
+        tie = self._newest_tie(edge, lo, hi)
+        if hi - tie < TAIL_MIN_POSES:
             return True
+        forward = int(solver.a[edge]) == lo
+        C_R, C_t = solver.relative_pose(lo, tie)
+        meas_R, meas_t, info = closure_moved(C_R, C_t, solver.meas_R[edge],
+                                             solver.meas_t[edge], solver.info[edge], forward)
+        a, b = (tie, hi) if forward else (hi, tie)
+        return self._spread_along(edge, a, b, meas_R, meas_t, info, deadline, "tail")
+
+    def _newest_tie(self, edge: int, lo: int, hi: int) -> int:
+        """The newest pose before ``hi`` and after ``lo`` at which an edge other than
+        ``edge`` and the odometry chain ends (``lo`` if none)."""
+        s, m = self.solver, self.solver.num_edges
+        a, b = s.a[:m], s.b[:m]
+        others = s.weight[:m] > 0.0
+        others[edge] = False
+        chain = self._odometry_edge[lo + 1: hi + 1]
+        others[chain[chain >= 0]] = False
+        ends = np.concatenate([a[others], b[others]])
+        ends = ends[(ends > lo) & (ends < hi)]
+        return int(ends.max()) if len(ends) else lo
+
+    def _spread_along(self, edge: int, a: int, b: int, meas_R: Array, meas_t: Array,
+                      info: Array, deadline: float, how: str) -> bool:
+        """``edge``'s error, as a closure ``a → b`` measured ``(meas_R, meas_t)`` with
+        ``info``, spread along the odometry chain between them; kept where the χ² of the
+        edges it moves fell."""
+        solver = self.solver
+        lo, hi = min(a, b), max(a, b)
+        chain = self._odometry_edge[lo + 1: hi + 1]
+        m = solver.num_edges
         touched = (solver.a[:m] > lo) | (solver.b[:m] > lo)
         work = (solver.num_nodes - lo) + int(np.count_nonzero(touched))
         predicted = self.spread_cost.predict(work) * self.spread_cost.margin(self.online.safety)
@@ -990,16 +1038,14 @@ class OnlineH2O:
             return False
         begin = self._clock()
         R, t = solver.world_poses()
-        weight = solver.weight[edge]
-        R_new, t_new = spread_loop(R, t, a, b, solver.meas_R[edge], solver.meas_t[edge],
-                                   weight * solver.info[edge], solver.info[chain],
-                                   solver.dof, self.online.spread_steps)
+        R_new, t_new = spread_loop(R, t, a, b, meas_R, meas_t, solver.weight[edge] * info,
+                                   solver.info[chain], solver.dof, self.online.spread_steps)
         edges = np.flatnonzero(touched)
         before = _moved_chi2(solver, edges, R, t)
         after = _moved_chi2(solver, edges, R_new, t_new)
         if after < before:
             solver.tree.set_world_poses(R_new, t_new)
-        self._count_spread(edge, after < before, "kept")
+        self._count_spread(edge, after < before, how)
         self.spread_cost.update(self._clock() - begin, work)
         return True
 

@@ -21,6 +21,7 @@ from h2o_slam.core.loop_spread import (
     _covariances,
     adjoint,
     closure_error,
+    closure_moved,
     perturbed,
     spread_loop,
     spread_step,
@@ -72,6 +73,45 @@ def test_adjoint_carries_a_right_perturbation_across_a_pose(pose: list[float],
     rhs_R, rhs_t = geo.compose(geo.so3_exp(moved[3:]), moved[:3], R, t)
     np.testing.assert_allclose(lhs_R, rhs_R, atol=1e-5)
     np.testing.assert_allclose(lhs_t, rhs_t, atol=1e-5)
+
+
+def _pose(v: list[float]) -> tuple[np.ndarray, np.ndarray]:
+    return geo.so3_exp(np.array(v[3:])), np.array(v[:3])
+
+
+def _closure_chi2(Ra, ta, Rb, tb, Z_R, Z_t, info) -> float:
+    e = geo.relative_error(Ra, ta, Rb, tb, Z_R, Z_t)
+    return float(e @ info @ e)
+
+
+_POSE = st.lists(st.floats(-2.0, 2.0), min_size=6, max_size=6)
+
+
+@settings(max_examples=40, deadline=None)
+@given(_POSE, _POSE, _POSE, _POSE, st.lists(st.floats(-1e-4, 1e-4), min_size=6, max_size=6),
+       st.integers(0, 2**32 - 1))
+def test_a_closure_moved_to_a_held_pose_has_the_same_chi2(
+        lo: list[float], c: list[float], z: list[float], far: list[float], near: list[float],
+        seed: int) -> None:
+    """Rewritten between pose ``k`` and ``hi`` (``T_lo`` and ``T_k`` held), a closure
+    ``lo → hi`` has its χ² at any ``T_hi``; one ``hi → lo`` near its fit, where the spread
+    linearizes it, to first order."""
+    R_lo, t_lo = _pose(lo)
+    C_R, C_t = _pose(c)
+    R_k, t_k = geo.compose(R_lo, t_lo, C_R, C_t)
+    Z_R, Z_t = _pose(z)
+    A = np.random.default_rng(seed).standard_normal((6, 6))
+    info = A @ A.T + 0.1 * np.eye(6)
+    R_hi, t_hi = _pose(far)
+    M_R, M_t, M_info = closure_moved(C_R, C_t, Z_R, Z_t, info, forward=True)
+    assert _closure_chi2(R_k, t_k, R_hi, t_hi, M_R, M_t, M_info) == pytest.approx(
+        _closure_chi2(R_lo, t_lo, R_hi, t_hi, Z_R, Z_t, info), rel=1e-9, abs=1e-12)
+    # hi → lo near its fit: T_hi = T_lo Z⁻¹ Exp(δ).
+    R_hi, t_hi = geo.compose(*geo.compose(R_lo, t_lo, *geo.inverse(Z_R, Z_t)), *_pose(near))
+    M_R, M_t, M_info = closure_moved(C_R, C_t, Z_R, Z_t, info, forward=False)
+    want = _closure_chi2(R_hi, t_hi, R_lo, t_lo, Z_R, Z_t, info)
+    got = _closure_chi2(R_hi, t_hi, R_k, t_k, M_R, M_t, M_info)
+    assert got == pytest.approx(want, rel=1e-3, abs=1e-12)
 
 
 @pytest.mark.parametrize("seed", range(3))
