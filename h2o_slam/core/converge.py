@@ -677,8 +677,8 @@ class Converger:
         #: A solution of fewer edges than this is dropped, unless its merge has begun: it
         #: was solved without a closure whose first correction it would undo (:meth:`stale`).
         self._stale_before = 0
-        # Seconds: an inline solve by edges × linearizations; a merge by nodes; a snapshot by
-        # nodes (memory copies: measured 5 ns a node on 10k nodes).
+        # Seconds: an inline solve by edges × linearizations; a merge slice by its nodes, its
+        # commit by the tree's; a snapshot by nodes (memory copies: 5 ns a node on 10k).
         # A robust solve has a fixed cost the per-edge slope cannot learn from a first
         # sample it was not predicted to have: 9.5 ms on a 2-node graph (1.2 ms without a
         # kernel), which the first callback of a node beside a worker paid (11.7 ms at a
@@ -687,6 +687,7 @@ class Converger:
         fixed_s = 8e-3 if robust is not None and background == "process" else 1e-3
         self.inline_cost = CostModel((fixed_s, 4e-6), (30000.0,))
         self.merge_cost = CostModel((2e-5, 2e-7), (1000.0,))
+        self.commit_cost = CostModel((5e-5, 1e-7), (3000.0,))
         self.copy_cost = CostModel((5e-5, 2e-8), (1000.0,))
         self._live: LiveIterations | None = None
         self._submitted_at = 0.0
@@ -908,12 +909,18 @@ class Converger:
             begin = clock()
             hi = min(sol.nodes, self._cursor + count)
             staged.stage(self.solver.tree.parent, self._cursor, hi)
-            if hi == sol.nodes:
-                # The last slice pays the copy into the tree: a node's share is a few
-                # percent of its staging.
-                staged.commit(self.solver.tree)
             self.merge_cost.update(clock() - begin, hi - self._cursor)
             self._cursor = hi
+        # The commit is a pass over the whole tree, priced on its own: folded into the last
+        # slice's sample, it taught the slices' model a cost they do not have.
+        tree = self.solver.tree
+        if deadline != math.inf and not self.commit_cost.fits(deadline - clock(), safety,
+                                                              tree.n):
+            self.commit_cost.forget()
+            return None
+        begin = clock()
+        staged.commit(tree)
+        self.commit_cost.update(clock() - begin, tree.n)
         self._merging = self._staged = None
         state = self.state
         state.merges += 1

@@ -241,9 +241,11 @@ class OnlineH2O:
         #: Odometry edge into each node (``k-1 → k``), -1 where there is none: the chains
         #: along which loops are spread.
         self._odometry_edge = np.full(64, -1, dtype=np.int64)
-        #: Seconds a spread costs: fixed, and per node and edge it moves (measured on
-        #: kitti_00's first loop, 2.2 ms for 2900).
-        self.spread_cost = CostModel((3e-4, 7.5e-7), (1000.0,))
+        #: Seconds a spread costs: fixed, per node of the map (its world poses gathered and
+        #: written back), and per node and edge it moves (measured on kitti_00's first
+        #: loop, 2.2 ms for 2900). By the map's size too: a tail spread moves a few poses
+        #: of a map of thousands.
+        self.spread_cost = CostModel((3e-4, 1.5e-7, 6e-7), (3000.0, 1000.0))
         #: The loop solved where it fits (before the spread is tried).
         self.loop_solve = LoopSolve()
         self.condensed_loop = CondensedLoop()
@@ -1031,9 +1033,8 @@ class OnlineH2O:
         chain = self._odometry_edge[lo + 1: hi + 1]
         m = solver.num_edges
         touched = (solver.a[:m] > lo) | (solver.b[:m] > lo)
-        work = (solver.num_nodes - lo) + int(np.count_nonzero(touched))
-        predicted = self.spread_cost.predict(work) * self.spread_cost.margin(self.online.safety)
-        if self._clock() + predicted > deadline:
+        work = (solver.num_nodes, (solver.num_nodes - lo) + int(np.count_nonzero(touched)))
+        if not self.spread_cost.fits(deadline - self._clock(), self.online.safety, *work):
             self.spreads["late"] += 1
             return False
         begin = self._clock()
@@ -1046,7 +1047,7 @@ class OnlineH2O:
         if after < before:
             solver.tree.set_world_poses(R_new, t_new)
         self._count_spread(edge, after < before, how)
-        self.spread_cost.update(self._clock() - begin, work)
+        self.spread_cost.update(self._clock() - begin, *work)
         return True
 
     def _count_spread(self, edge: int, kept: bool, how: str) -> None:
