@@ -36,7 +36,9 @@ single-edge updates, the background solves) uses the same ones.
 
 from __future__ import annotations
 
+import hashlib
 import math
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum
@@ -917,10 +919,52 @@ def group_chi2(solver: H2OSolver, groups: list[np.ndarray], chunk: int = 128,
     """:func:`innovation_chi2` (``sign`` −1: :func:`deletion_chi2`) of each group of edges
     taken together: the stacked residual against the joint covariance, cross terms between
     the group's edges included. Two false closures that hold a stretch together each have a
-    small deletion χ² (the other holds it), their joint one is large."""
-    out = np.zeros(len(groups))
+    small deletion χ² (the other holds it), their joint one is large.
+
+    Groups already scored at the same map, edges and weights are not scored again
+    (:class:`_Scored`): a settling round tests every accepted closure alone, then its
+    places for a drop, then the same places for joint compatibility, each a factorization
+    and ``2p`` columns of ``H⁻¹`` a closure (a 1,000-pose 3-D grid without outliers: the
+    places' second scoring was 1.6 of the robust solve's 4.4 s)."""
     if not groups:
-        return out
+        return np.zeros(0)
+    scored = _Scored.at(solver, sign)
+    keys = [tuple(sorted(np.asarray(g, dtype=np.int64).tolist())) for g in groups]
+    todo = list(dict.fromkeys(k for k in keys if k not in scored))
+    if todo:
+        fresh = _group_chi2([np.array(k, dtype=np.int64) for k in todo], solver, chunk, sign)
+        scored.update(zip(todo, fresh.tolist(), strict=True))
+    return np.array([scored[k] for k in keys])
+
+
+class _Scored:
+    """The group χ² scored at one state of a solver (per thread): the map, the edges and
+    their weights, hashed."""
+
+    _local = threading.local()
+
+    @classmethod
+    def at(cls, solver: H2OSolver, sign: float) -> dict[tuple[int, ...], float]:
+        """The groups scored so far at the solver's present state (a new, empty dict when
+        the state changed since the last call)."""
+        n, m = solver.num_nodes, solver.num_edges
+        tree = solver.tree
+        digest = hashlib.blake2b(np.float64(sign).tobytes(), digest_size=16)
+        for arr in (tree.parent[:n], tree.R[:n], tree.t[:n], solver.a, solver.b, solver.kind,
+                    solver.weight[:m], solver.meas_R, solver.meas_t, solver.info):
+            digest.update(np.ascontiguousarray(arr).tobytes())
+        key = (id(solver), n, m, digest.digest())
+        local = cls._local
+        if getattr(local, "key", None) != key:
+            local.key, local.scored = key, {}
+        scored: dict[tuple[int, ...], float] = local.scored
+        return scored
+
+
+def _group_chi2(groups: list[np.ndarray], solver: H2OSolver, chunk: int, sign: float
+                ) -> Array:
+    """:func:`group_chi2`, every group scored."""
+    out = np.zeros(len(groups))
     flat = np.concatenate(groups).astype(np.int64)
     r, J, var, solve, unknowns = _whitened(solver, flat)
     first = np.cumsum([0] + [len(g) for g in groups])

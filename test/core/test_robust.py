@@ -231,6 +231,36 @@ def test_joint_deletion_is_what_removing_the_group_saves(world):
     np.testing.assert_allclose(with_edges - without, joint, rtol=0.05)
 
 
+def test_groups_scored_at_one_state_are_scored_once(world, monkeypatch):
+    """A group scored again at the same map, edges and weights is not recomputed; after a
+    change of weights or of the map it is, and equals a fresh scoring."""
+    from h2o_slam.core import robust
+
+    graph, _ = world
+    trusted = odometry_edges(graph.kind, graph.a, graph.b)
+    pair = np.flatnonzero(~trusted)[[3, 4]]
+    solver, _ = build_solver(graph, init="tree", regularizer=False)
+    converge_exact(solver, 100)
+    calls = []
+    scored = robust._group_chi2
+    monkeypatch.setattr(robust, "_group_chi2", lambda groups, *a: calls.append(len(groups))
+                        or scored(groups, *a))
+    first = group_chi2(solver, [pair, pair[:1]], sign=-1.0)
+    again = group_chi2(solver, [pair[::-1], pair[1:], pair[:1]], sign=-1.0)
+    assert calls == [2, 1]  # only the new single
+    np.testing.assert_array_equal(again[[0, 2]], first)
+    weights = np.ones(graph.num_edges)
+    weights[pair[1]] = 0.0
+    solver.set_weights(weights)
+    after = group_chi2(solver, [pair[:1]], sign=-1.0)
+    assert calls == [2, 1, 1]
+    np.testing.assert_allclose(after, scored([pair[:1]], solver, 128, -1.0), rtol=1e-12)
+    assert not np.isclose(after[0], first[1])
+    solver.tree.t[5] += 0.1
+    group_chi2(solver, [pair[:1]], sign=-1.0)
+    assert calls == [2, 1, 1, 1]
+
+
 def test_false_closures_that_hold_a_stretch_together_are_dropped_together():
     """Two consistent false closures accepted together on a weakly tied walk (few closures,
     noisy odometry): each one's deletion χ² is small (the other holds the bent stretch), so
