@@ -450,27 +450,20 @@ class ConvergeState:
     last_error: str = ""
 
 
-def merge_solution(tree: PoseTree, sol: Solution, lo: int, hi: int) -> None:
-    """Write the solution of snapshot nodes ``lo … hi-1`` into the live tree.
-
-    A node whose parent is in the snapshot gets the local transform between their solved
-    poses; a top gets its solved pose; a node hung (since the snapshot) under a newer node
-    keeps its local transform, as every node added after the snapshot does.
-    """
-    _write_locals(tree, sol, np.arange(lo, hi))
-
-
-def _write_locals(tree: PoseTree, sol: Solution, idx: np.ndarray) -> None:
-    placed, R, t = solved_locals(tree.parent[idx], sol, idx)
-    tree.R[idx[placed]] = R
-    tree.t[idx[placed]] = t
+def merge_solution(tree: PoseTree, sol: Solution) -> None:
+    """Write the whole solution into the live tree at once (:class:`StagedMerge` in one
+    slice): every snapshot node at its solved pose, every node added after the snapshot
+    at its tree-relative pose under its parent."""
+    staged = StagedMerge(sol)
+    staged.stage(tree.parent, 0, sol.nodes)
+    staged.commit(tree)
 
 
 def solved_locals(parent: np.ndarray, sol: Solution, idx: np.ndarray
                   ) -> tuple[np.ndarray, Array, Array]:
     """The local transforms the solution gives the snapshot nodes ``idx`` under ``parent``
     (theirs): which of them it places (tops, and children of snapshot nodes) and, for
-    those, the transforms (:func:`merge_solution`)."""
+    those, the transforms."""
     top = parent == EARTH
     placed = top | (parent < sol.nodes)
     i, p, top = idx[placed], parent[placed], top[placed]

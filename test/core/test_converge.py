@@ -19,7 +19,6 @@ from h2o_slam.core.converge import (
     LiveIterations,
     Solution,
     StagedMerge,
-    merge_solution,
 )
 from h2o_slam.core.exact import converge_exact
 from h2o_slam.core.graph import chi2
@@ -140,9 +139,11 @@ def test_merging_keeps_nodes_added_after_the_snapshot_at_their_tree_pose(city, s
     tree = h2o.solver.tree
     later = np.arange(60, 90)
     R_before, t_before = tree.R[later].copy(), tree.t[later].copy()
+    staged = StagedMerge(sol)
     bounds = np.linspace(0, sol.nodes, slices + 1).astype(int)
     for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
-        merge_solution(tree, sol, int(lo), int(hi))
+        staged.stage(tree.parent, int(lo), int(hi))
+    staged.commit(tree)
     np.testing.assert_array_equal(tree.R[later], R_before)
     np.testing.assert_array_equal(tree.t[later], t_before)
     R_w, t_w = h2o.solver.world_poses()

@@ -187,7 +187,7 @@ def test_closures_an_older_solution_undid_are_relaxed_again() -> None:
         h2o._relax_new(float("inf"), StepReport())  # noqa: SLF001 - the closure's update
         corrected = h2o.solver.chi2(g)
         assert closure not in h2o.pending
-        merge_solution(h2o.solver.tree, older, 0, older.nodes)
+        merge_solution(h2o.solver.tree, older)
         undone = h2o.solver.chi2(g)
         assert undone > 10.0 * corrected
         h2o._after_merge(older)  # noqa: SLF001 - what completing that merge does
