@@ -969,18 +969,19 @@ class OnlineH2O:
             return None
         return loop.run(solver, free, edges, deadline, clock, safety)
 
-    def _crossed(self, edge: int, lo: int, hi: int) -> bool:
-        """Another closure or a GPS fix ends inside the loop ``lo → hi``: the spread, which
-        solves the loop as if nothing else tied it, would bend them (kitti_00, a closure
-        2,055 poses back across 20 older ones: r 932 after the spread, 5.8 after the tree
-        path's update alone)."""
+    def _ties_inside(self, edge: int, lo: int, hi: int) -> np.ndarray:
+        """Poses in ``lo < k ≤ hi`` at which a closure or GPS fix other than ``edge`` ends
+        (not dropped): where there are any the loop is crossed, and the spread, which solves
+        the loop as if nothing else tied it, would bend them (kitti_00, a closure 2,055
+        poses back across 20 older ones: r 932 after the spread, 5.8 after the tree path's
+        update alone)."""
         s, m = self.solver, self.solver.num_edges
-        a, b = s.a[:m], s.b[:m]
-        inside = ((a > lo) & (a <= hi)) | ((b > lo) & (b <= hi))
-        inside[edge] = False
+        others = s.weight[:m] > 0.0
+        others[edge] = False
         chain = self._odometry_edge[lo + 1: s.num_nodes]
-        inside[chain[chain >= 0]] = False
-        return bool(np.any(inside & (s.weight[:m] > 0.0)))
+        others[chain[chain >= 0]] = False
+        ends = np.concatenate([s.a[:m][others], s.b[:m][others]])
+        return ends[(ends > lo) & (ends <= hi)]
 
     def _spread_chain(self, edge: int, lo: int, hi: int, deadline: float) -> bool:
         """The spread of ``edge`` along its odometry chain (see :meth:`_spread`); where
@@ -990,23 +991,27 @@ class OnlineH2O:
         chain = self._odometry_edge[lo + 1: hi + 1]
         if len(chain) < hi - lo or np.any(chain < 0):
             return True
-        if self._crossed(edge, lo, hi):
+        ties = self._ties_inside(edge, lo, hi)
+        if len(ties):
             self.spreads["crossed"] += 1
-            return self._spread_tail(edge, lo, hi, deadline)
+            return self._spread_tail(edge, lo, hi, ties, deadline)
         return self._spread_along(edge, int(solver.a[edge]), int(solver.b[edge]),
                                   solver.meas_R[edge], solver.meas_t[edge], solver.info[edge],
                                   deadline, "kept")
 
-    def _spread_tail(self, edge: int, lo: int, hi: int, deadline: float) -> bool:
+    def _spread_tail(self, edge: int, lo: int, hi: int, ties: np.ndarray, deadline: float
+                     ) -> bool:
         """A closure across older ones spread over the poses after the newest pose another
-        edge ties, the rest of the map held: with ``lo`` and that pose fixed, the closure is
-        one between that pose and ``hi`` (:func:`~h2o_slam.core.loop_spread.closure_moved`),
-        and the stretch after it, which nothing else holds, takes the correction
-        that the map, stiffened by the closures inside the loop, mostly does not (manhattan,
-        the first closure of a revisit 3,000 poses back: the tree path's short update left
-        46 times the optimum's χ² for seven callbacks, until a background solution)."""
+        edge ties (``ties``: :meth:`_ties_inside`), the rest of the map held: with ``lo`` and
+        that pose fixed, the closure is one between that pose and ``hi``
+        (:func:`~h2o_slam.core.loop_spread.closure_moved`), and the stretch after it, which
+        nothing else holds, takes the correction that the map, stiffened by the closures
+        inside the loop, mostly does not (manhattan, the first closure of a revisit 3,000
+        poses back: the tree path's short update left 46 times the optimum's χ² for seven
+        callbacks, until a background solution)."""
         solver = self.solver
-        tie = self._newest_tie(edge, lo, hi)
+        before_hi = ties[ties < hi]
+        tie = int(before_hi.max()) if len(before_hi) else lo
         if hi - tie < TAIL_MIN_POSES:
             return True
         forward = int(solver.a[edge]) == lo
@@ -1015,19 +1020,6 @@ class OnlineH2O:
                                              solver.meas_t[edge], solver.info[edge], forward)
         a, b = (tie, hi) if forward else (hi, tie)
         return self._spread_along(edge, a, b, meas_R, meas_t, info, deadline, "tail")
-
-    def _newest_tie(self, edge: int, lo: int, hi: int) -> int:
-        """The newest pose before ``hi`` and after ``lo`` at which an edge other than
-        ``edge`` and the odometry chain ends (``lo`` if none)."""
-        s, m = self.solver, self.solver.num_edges
-        a, b = s.a[:m], s.b[:m]
-        others = s.weight[:m] > 0.0
-        others[edge] = False
-        chain = self._odometry_edge[lo + 1: hi + 1]
-        others[chain[chain >= 0]] = False
-        ends = np.concatenate([a[others], b[others]])
-        ends = ends[(ends > lo) & (ends < hi)]
-        return int(ends.max()) if len(ends) else lo
 
     def _spread_along(self, edge: int, a: int, b: int, meas_R: Array, meas_t: Array,
                       info: Array, deadline: float, how: str) -> bool:

@@ -117,7 +117,7 @@ def test_a_crossed_loop_is_spread_along_its_tail_not_whole(
         patch.setattr(OnlineH2O, "_spread_tail", lambda *args: True)
         alone, counts = chi2_after_closure(g, True, False, None)
     assert counts == {"crossed": 2, "kept": 1}
-    monkeypatch.setattr(OnlineH2O, "_crossed", lambda *args: False)
+    monkeypatch.setattr(OnlineH2O, "_ties_inside", lambda *args: [])
     whole, counts = chi2_after_closure(g, True, False, None)
     assert counts == {"kept": 3}
     assert tail < 5.0
