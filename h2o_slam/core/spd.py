@@ -193,16 +193,20 @@ class _Cholmod:
         return np.array(x, dtype=float).reshape(np.shape(rhs))
 
     def split_solve(self, data: Array, rhs: Array) -> tuple[Array, Array]:
-        """``(L⁻¹ P rhs, D⁻¹ L⁻¹ P rhs)`` (:meth:`SPDFactor.split_solve`)."""
+        """``(L⁻¹ P rhs, D⁻¹ L⁻¹ P rhs)`` (:meth:`SPDFactor.split_solve`), both in column-major
+        order: ``L⁻¹ P rhs`` is a view of cvxopt's own result, since converting cvxopt's
+        column-major matrices to numpy's row-major order element by element took as long as
+        the solves (a 1,000-pose 3-D grid's robust solve: 1.1 of 3.3 s)."""
         self._numeric(data)
-        y = self._cvxopt.matrix(np.array(rhs, dtype=float))
+        y = self._cvxopt.matrix(np.asfortranarray(rhs, dtype=float))
         for system in (7, 4):  # cvxopt's sys: 7 applies P, 4 solves with L, 6 with D
             self._cholmod.solve(self._F, y, sys=system)
-        z = self._cvxopt.matrix(y)
-        self._cholmod.solve(self._F, z, sys=6)
         shape = np.shape(rhs)
-        return (np.array(y, dtype=float).reshape(shape),
-                np.array(z, dtype=float).reshape(shape))
+        Y = np.asarray(memoryview(y)).reshape(shape, order="F")
+        d_inv = self._cvxopt.matrix(1.0, (self._A.size[0], 1))
+        self._cholmod.solve(self._F, d_inv, sys=6)  # D⁻¹ (ones for an LLᵀ factor)
+        scale = np.asarray(memoryview(d_inv)).ravel()
+        return Y, Y * (scale[:, None] if Y.ndim == 2 else scale)
 
     def _numeric(self, data: Array) -> None:
         cvxopt, cholmod = self._cvxopt, self._cholmod

@@ -46,6 +46,8 @@ def test_split_solves_give_the_quadratic_forms_of_the_inverse(method, seed):
     Y, Z = SPDFactor(U.indptr, U.indices, method).split_solve(U.data, B)
     expected = B.T @ np.linalg.solve(H.toarray(), B)
     np.testing.assert_allclose(Y.T @ Z, expected, rtol=1e-9, atol=1e-9)
+    y, z = SPDFactor(U.indptr, U.indices, method).split_solve(U.data, B[:, 2])
+    np.testing.assert_allclose(y @ z, expected[2, 2], rtol=1e-9, atol=1e-9)
 
 
 @pytest.mark.parametrize("method", BACKENDS)
