@@ -729,13 +729,18 @@ def _drop_strained(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, ite
     places: list[np.ndarray] = []
     every = len(inside) * solver.num_nodes * solver.p <= DELETION_WORK
     if every:
+        shared = _places(solver, inside)
+        # Each closure alone and each place in one scoring: a place's columns of H⁻¹ are
+        # its closures' own (half the solves of scoring them apart).
+        joint = group_chi2(solver, [inside[[i]] for i in range(len(inside))]
+                           + [inside[g] for g in shared], sign=-1.0)
         # The deletion χ² is, to first order, the dropped edge's innovation after the drop:
         # below SIGNIFICANT × c̄² the move would be refused, so it is not tried.
-        deletion = deletion_chi2(solver, inside) / c2[inside]
+        deletion = joint[:len(inside)] / c2[inside]
         strained &= deletion > SIGNIFICANT
         order = [i for i in np.argsort(-deletion)[:MAX_TRIES] if deletion[i] > SIGNIFICANT]
         order += [i for i in np.argsort(-ratio)[:MAX_TRIES] if strained[i]]
-        places = _held_places(solver, inside, c2)
+        places = _held_places(inside, c2, shared, joint[len(inside):])
     # Single closures first (a false closure among true ones of the same revisit shares
     # their place, so its cluster would take them out with it), then whole places.
     singles = [np.array([i]) for i in dict.fromkeys(order)]
@@ -767,23 +772,27 @@ def _significant_drops(solver: H2OSolver, inside: np.ndarray, c2: Array,
     return [g for g, ratio in zip(candidates, joint / scale, strict=True) if ratio > SIGNIFICANT]
 
 
-def _held_places(solver: H2OSolver, inside: np.ndarray, c2: Array) -> list[np.ndarray]:
-    """Places of several accepted closures (positions in ``inside``) whose joint deletion χ²
+def _places(solver: H2OSolver, inside: np.ndarray) -> list[np.ndarray]:
+    """Places of several accepted loop closures (positions in ``inside``, :func:`_clusters`).
+    Loop closures only: GPS fixes share no place (their first end is the earth), and a run
+    of jumped fixes is the GPS gate's to hold."""
+    closures = np.flatnonzero(solver.kind[inside] == EdgeKind.RELATIVE)
+    return [closures[g] for g in _clusters(solver.a[inside[closures]],
+                                           solver.b[inside[closures]],
+                                           np.zeros(len(closures))) if len(g) > 1]
+
+
+def _held_places(inside: np.ndarray, c2: Array, places: list[np.ndarray], joint: Array
+                 ) -> list[np.ndarray]:
+    """The ``places`` (positions in ``inside``) whose joint deletion χ² ``joint``
     (:func:`group_chi2`) exceeds :data:`SIGNIFICANT` times one closure's ``c̄²`` (the drop
     move's own test), largest share of their summed ``c̄²`` first: a group of consistent
     false closures holds a bent stretch together, each one's own deletion χ² small because
     the others hold it (measured on intel with a group of 10: two accepted, deletion χ²
     0.93 and 0.34 ``c̄²`` each, 4.6 times the pair's summed ``c̄²`` together, where the next
     place is at 0.15; on MIT, ten accepted at 1.05 times, the next at 0.14)."""
-    # Loop closures only: GPS fixes share no place (their first end is the earth), and a
-    # run of jumped fixes is the GPS gate's to hold.
-    closures = np.flatnonzero(solver.kind[inside] == EdgeKind.RELATIVE)
-    places = [closures[g] for g in _clusters(solver.a[inside[closures]],
-                                             solver.b[inside[closures]],
-                                             np.zeros(len(closures))) if len(g) > 1]
     if not places:
         return []
-    joint = group_chi2(solver, [inside[g] for g in places], sign=-1.0)
     ratio = joint / np.array([c2[inside[g]].sum() for g in places])
     wide = joint > SIGNIFICANT * np.array([c2[inside[g]].max() for g in places])
     return [places[i] for i in np.argsort(-ratio)[:MAX_TRIES] if wide[i]]
@@ -963,50 +972,88 @@ class _Scored:
 
 def _group_chi2(groups: list[np.ndarray], solver: H2OSolver, chunk: int, sign: float
                 ) -> Array:
-    """:func:`group_chi2`, every group scored."""
+    """:func:`group_chi2`, every group scored.
+
+    A group's columns of ``H⁻¹`` are its edges' own, so each edge is solved once for every
+    group it is in: groups that share edges (a closure alone and its place, scored together
+    by a settling round) are batched with them (:func:`_batches`)."""
+    edges, member = np.unique(np.concatenate(groups).astype(np.int64), return_inverse=True)
+    members = np.split(member.ravel(), np.cumsum([len(g) for g in groups])[:-1])
+    r, J, var, solve, unknowns = _whitened(solver, edges)
     out = np.zeros(len(groups))
-    flat = np.concatenate(groups).astype(np.int64)
-    r, J, var, solve, unknowns = _whitened(solver, flat)
-    first = np.cumsum([0] + [len(g) for g in groups])
-    # Groups of like size batched together, each batch padded to its largest.
-    sizes = np.array([max(len(g), 1) for g in groups])
-    order = np.argsort(sizes, kind="stable")
-    lo = 0
-    while lo < len(order):
-        # Ascending sizes: a batch's padding is its last group's size.
-        hi = lo + 1
-        while hi < len(order) and (hi + 1 - lo) * sizes[order[hi]] <= chunk:
-            hi += 1
-        batch = order[lo:hi]
-        size = int(sizes[order[hi - 1]])
-        rows = [np.arange(first[i], first[i + 1]) for i in batch]
-        out[batch] = _batch_chi2(r, J, var, rows, size, solve, unknowns, sign)
-        lo = hi
+    for batch_edges, batch_groups in _batches(members, len(edges), chunk):
+        local = np.full(len(edges), -1, dtype=np.int64)
+        local[batch_edges] = np.arange(len(batch_edges))
+        out[batch_groups] = _batch_chi2(
+            r[batch_edges], J[batch_edges], var[batch_edges],
+            [local[members[i]] for i in batch_groups], solve, unknowns, sign)
     return out
 
 
-def _batch_chi2(r: Array, J: Array, var: np.ndarray, rows: list[np.ndarray], size: int,
+def _batches(members: list[np.ndarray], count: int, chunk: int
+             ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Groups (``members``: indices into ``count`` edges) packed into batches of at most
+    ``chunk`` edges, groups that share an edge in one batch (a larger set of such groups
+    is a batch of its own): each batch's edges and groups."""
+    from scipy.sparse.csgraph import connected_components  # on use: see chdtri
+
+    sizes = np.array([len(m) for m in members])
+    rows = np.repeat(np.arange(len(members)), sizes)
+    cols = np.concatenate(members) if len(members) else np.zeros(0, dtype=np.int64)
+    # Edges and groups as one bipartite graph: its components are the sets to keep whole.
+    total = count + len(members)
+    link = sp.coo_matrix((np.ones(len(cols)), (cols, count + rows)), shape=(total, total))
+    _, label = connected_components(link, directed=False)
+    edge_label, group_label = label[:count], label[count:]
+    order = np.argsort(edge_label, kind="stable")
+    bounds = np.flatnonzero(np.diff(edge_label[order])) + 1
+    batches: list[tuple[np.ndarray, np.ndarray]] = []
+    current: list[np.ndarray] = []
+    for component in np.split(order, bounds):
+        if current and sum(map(len, current)) + len(component) > chunk:
+            batches.append(_batch_of(current, edge_label, group_label))
+            current = []
+        current.append(component)
+    if current:
+        batches.append(_batch_of(current, edge_label, group_label))
+    return batches
+
+
+def _batch_of(components: list[np.ndarray], edge_label: np.ndarray, group_label: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """The edges of ``components`` and the groups with them."""
+    edges = np.concatenate(components)
+    return edges, np.flatnonzero(np.isin(group_label, edge_label[edges]))
+
+
+def _batch_chi2(r: Array, J: Array, var: np.ndarray, groups: list[np.ndarray],
                 solve: Split | None, unknowns: int, sign: float) -> Array:
-    """:func:`group_chi2` of groups of at most ``size`` edges (``rows`` of ``r``, ``J``,
-    ``var``): each group a super-edge, its edges' Jacobians block-diagonal, padding zero."""
+    """:func:`group_chi2` of ``groups`` (indices into the batch's edges: ``r``, ``J``,
+    ``var``), every one from the same columns of ``H⁻¹``: each group a super-edge, its
+    edges' Jacobians block-diagonal."""
     p = r.shape[1]
-    n = len(rows)
-    rg = np.zeros((n, size * p))
-    Jg = np.zeros((n, size * p, 2 * size * p))
-    vg = np.full((n, 2 * size * p), -1, dtype=np.int64)
-    for i, idx in enumerate(rows):
-        rg[i, :len(idx) * p] = r[idx].ravel()
-        vg[i, :len(idx) * 2 * p] = var[idx].ravel()
-        for k, e in enumerate(idx):
-            Jg[i, k * p:(k + 1) * p, 2 * k * p:2 * (k + 1) * p] = J[e]
-    S = np.broadcast_to(np.eye(size * p), (n, size * p, size * p)).copy()
+    columns = None
     if solve is not None:
         try:
-            S += sign * _map_term(solve, Jg, vg, unknowns)
+            columns = _map_columns(solve, J, var, unknowns)
         except np.linalg.LinAlgError:  # singular: a direction no edge constrains
-            S = np.broadcast_to(np.eye(size * p), S.shape).copy()
-    # Pseudo-inverse: I − JΣJᵀ of an edge the map cannot do without is singular.
-    return np.einsum("ei,eij,ej->e", rg, np.linalg.pinv(S, hermitian=True), rg)
+            columns = None
+    out = np.zeros(len(groups))
+    sizes = np.array([len(g) for g in groups])
+    for size in np.unique(sizes):
+        which = np.flatnonzero(sizes == size)
+        idx = np.array([groups[i] for i in which], dtype=np.int64)  # (G, size)
+        rg = r[idx].reshape(len(which), size * p)
+        S = np.broadcast_to(np.eye(size * p), (len(which), size * p, size * p)).copy()
+        if columns is not None and size == 1:  # each edge's own block: no gathered copy
+            Y, Z = columns
+            S += sign * np.matmul(Y.transpose(1, 2, 0), Z.transpose(1, 0, 2))[idx[:, 0]]
+        elif columns is not None:
+            Y, Z = (c[:, idx, :].reshape(unknowns, len(which), size * p) for c in columns)
+            S += sign * np.matmul(Y.transpose(1, 2, 0), Z.transpose(1, 0, 2))
+        # Pseudo-inverse: I − JΣJᵀ of an edge the map cannot do without is singular.
+        out[which] = np.einsum("ei,eij,ej->e", rg, np.linalg.pinv(S, hermitian=True), rg)
+    return out
 
 
 def _whitened(solver: H2OSolver, edges: np.ndarray
@@ -1041,10 +1088,11 @@ def _whitened(solver: H2OSolver, edges: np.ndarray
     return r, J, var, lambda B: factor.split_solve(U.data, B), H.shape[0]
 
 
-def _map_term(split: Split, J: Array, var: np.ndarray, size: int) -> Array:
-    """``J Σ Jᵀ`` per edge, ``Σ = H⁻¹`` over the unknowns ``var`` of ``J``'s columns (-1:
-    held, 0): the quadratic forms of ``Jᵀ``'s columns scattered into the unknowns, by
-    ``split`` (:meth:`~h2o_slam.core.spd.SPDFactor.split_solve`). A quarter of the work of
+def _map_columns(split: Split, J: Array, var: np.ndarray, size: int) -> tuple[Array, Array]:
+    """``(Y, Z)``, each ``(size, k, p)``, with ``Y[:, e]ᵀ Z[:, f] = J_e Σ J_fᵀ`` for the ``k``
+    edges' whitened Jacobians ``J`` (``k × p × 2p``), ``Σ = H⁻¹`` over the unknowns ``var``
+    of their columns (-1: held, 0): ``Jᵀ``'s columns scattered into the unknowns and split
+    solved (:meth:`~h2o_slam.core.spd.SPDFactor.split_solve`). A quarter of the work of
     solving for the ``2p`` columns of ``H⁻¹`` at each edge's ends: ``p`` columns, half a
     solve each (city10000 with 1,000 false closures out: 86 % of a robust solve)."""
     k, rows, _ = J.shape
@@ -1052,13 +1100,10 @@ def _map_term(split: Split, J: Array, var: np.ndarray, size: int) -> Array:
     # Column-major, as the solver takes and gives it (no transposing copies).
     B = np.zeros((size, k * rows), order="F")
     for j in range(rows):
-        # add: two edges of a group may share an end
+        # add: an edge's two ends may be one unknown block (a self-loop is refused earlier)
         np.add.at(B, (var[e, u], e * rows + j), J[e, j, u])
     Y, Z = split(B)
-    # Per edge, the Gram matrix of its columns over the unknowns: batched products
-    # (BLAS) instead of one einsum over every unknown.
-    return np.matmul(Y.reshape(size, k, rows).transpose(1, 2, 0),
-                     Z.reshape(size, k, rows).transpose(1, 0, 2))
+    return Y.reshape(size, k, rows), Z.reshape(size, k, rows)
 
 
 def _binary(w: Array) -> bool:

@@ -261,6 +261,30 @@ def test_groups_scored_at_one_state_are_scored_once(world, monkeypatch):
     assert calls == [2, 1, 1, 1]
 
 
+@pytest.fixture(scope="module")
+def solved_world(world):
+    """The small world's solver at its optimum, and its loop closures."""
+    graph, _ = world
+    solver, _ = build_solver(graph, init="tree", regularizer=False)
+    converge_exact(solver, 100)
+    return solver, np.flatnonzero(~odometry_edges(graph.kind, graph.a, graph.b))
+
+
+@given(picks=st.lists(st.lists(st.integers(0, 39), min_size=1, max_size=4), min_size=1,
+                      max_size=12),
+       chunk=st.integers(1, 9), sign=st.sampled_from([1.0, -1.0]))
+def test_groups_scored_together_equal_each_scored_alone(solved_world, picks, chunk, sign):
+    """Groups that share closures are solved from their closures' shared columns of H⁻¹,
+    packed into batches of ``chunk`` edges: each group's χ² is the one it has alone."""
+    from h2o_slam.core import robust
+
+    solver, closures = solved_world
+    groups = [closures[np.unique(p)] for p in picks]
+    together = robust._group_chi2(groups, solver, chunk, sign)
+    alone = [robust._group_chi2([g], solver, 128, sign)[0] for g in groups]
+    np.testing.assert_allclose(together, alone, rtol=1e-9, atol=1e-9)
+
+
 def test_false_closures_that_hold_a_stretch_together_are_dropped_together():
     """Two consistent false closures accepted together on a weakly tied walk (few closures,
     noisy odometry): each one's deletion χ² is small (the other holds the bent stretch), so
