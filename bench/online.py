@@ -3,7 +3,7 @@ both fed the public pose graphs one callback per arriving pose (issues 11 and 25
 
     .venv/bin/python bench/online.py [--data DIR] [--graphs NAME ...] [--budgets MS ...]
                                      [--timeout S] [--output-dir DIR] [--skip-isam2]
-                                     [--period-ms MS] [--busy N] [--plots DIR]
+                                     [--period-ms MS] [--busy N] [--nice N] [--plots DIR]
                                      [--results FILE | --no-results]
 
 Protocol, per graph:
@@ -21,7 +21,8 @@ Protocol, per graph:
    gives χ² of the edges so far at every sample, χ² at the end of the stream, χ² after the
    1 s of budgeted idle steps, and the exact solves that ran beside the updates; the trace
    gives every callback's wall time. With ``--busy N``, N CPU-bound processes
-   (:func:`busy`) run beside all of a graph's H₂O and iSAM2 runs (steps 3 and 4).
+   (:func:`busy`) run beside all of a graph's H₂O and iSAM2 runs (steps 3 and 4); with
+   ``--nice N`` those runs are at nice N and the load at 0.
 4. GTSAM ``ISAM2`` fed the same arrivals (:func:`h2o_slam.core.modes.arrivals`: at pose ``k``
    every edge whose newest pose is ``k``) in this process, one ``update`` per pose. After
    the update of a sampled pose, outside its timed region, the χ² of the edges so far at
@@ -504,13 +505,20 @@ def busy(count: int) -> Iterator[list[subprocess.Popen[bytes]]]:
         for _ in range(count):
             procs.append(subprocess.Popen(
                 [sys.executable, "-c", BUSY_CODE, str(os.getpid())], stdin=subprocess.DEVNULL,
-                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                preexec_fn=_default_priority))
         yield procs
     finally:
         for proc in procs:
             proc.kill()
         for proc in procs:
             proc.wait()
+
+
+def _default_priority() -> None:
+    """The load runs at nice 0 whatever ``--nice`` gave the benchmark (in the child, before
+    it starts: a lower priority needs no privilege)."""
+    os.setpriority(os.PRIO_PROCESS, 0, 0)
 
 
 # --- the optimum -------------------------------------------------------------------------------
@@ -903,10 +911,13 @@ def _summary(results: list[GraphOnline], busy_count: int = 0) -> str:
 
 
 def _busy_words(count: int) -> str:
-    """``--busy`` in words, e.g. "2 CPU-bound processes beside every run"."""
+    """``--busy`` in words, e.g. "2 CPU-bound processes beside every run", and the runs'
+    priority when ``--nice`` changed it."""
+    nice = os.getpriority(os.PRIO_PROCESS, 0)
+    runs = f"; the H₂O and iSAM2 runs at nice {nice}, the load at 0" if nice else ""
     if not count:
-        return "no CPU-bound process added beside the runs"
-    return f"{count} CPU-bound process{'es' if count > 1 else ''} beside every run"
+        return "no CPU-bound process added beside the runs" + runs
+    return f"{count} CPU-bound process{'es' if count > 1 else ''} beside every run" + runs
 
 
 NOTES = f"""\
@@ -1026,7 +1037,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--busy", type=int, default=0, metavar="N",
                         help="run N CPU-bound processes beside every H₂O and iSAM2 run "
                              "(default 0)")
+    parser.add_argument("--nice", type=int, default=0, metavar="N",
+                        help="run H₂O and iSAM2 at nice N, the --busy load at 0, as a robot "
+                             "gives its localization priority over perception (negative N "
+                             "needs CAP_SYS_NICE; default 0)")
     args = parser.parse_args(argv)
+    if args.nice > 0:
+        parser.error("--nice must be 0 or negative: the runs at or above the load's priority")
+    if args.nice:
+        try:  # Linux: the calling thread's nice, which the runs started from it inherit
+            os.setpriority(os.PRIO_PROCESS, 0, args.nice)
+        except OSError as err:
+            parser.error(f"--nice {args.nice}: {err} (a negative nice needs CAP_SYS_NICE)")
     if any(b <= 0 for b in args.budgets):
         parser.error("--budgets must be positive")
     if not 0.0 <= args.period_ms < math.inf:
