@@ -3,7 +3,8 @@ both fed the public pose graphs one callback per arriving pose (issues 11 and 25
 
     .venv/bin/python bench/online.py [--data DIR] [--graphs NAME ...] [--budgets MS ...]
                                      [--timeout S] [--output-dir DIR] [--skip-isam2]
-                                     [--period-ms MS] [--busy N] [--nice N] [--plots DIR]
+                                     [--period-ms MS] [--busy N] [--nice N] [--fifo P]
+                                     [--plots DIR]
                                      [--results FILE | --no-results]
 
 Protocol, per graph:
@@ -22,7 +23,8 @@ Protocol, per graph:
    1 s of budgeted idle steps, and the exact solves that ran beside the updates; the trace
    gives every callback's wall time. With ``--busy N``, N CPU-bound processes
    (:func:`busy`) run beside all of a graph's H₂O and iSAM2 runs (steps 3 and 4); with
-   ``--nice N`` those runs are at nice N and the load at 0.
+   ``--nice N`` those runs are at nice N and the load at 0, with ``--fifo P`` under
+   SCHED_FIFO at priority P and the load under SCHED_OTHER.
 4. GTSAM ``ISAM2`` fed the same arrivals (:func:`h2o_slam.core.modes.arrivals`: at pose ``k``
    every edge whose newest pose is ``k``) in this process, one ``update`` per pose. After
    the update of a sampled pose, outside its timed region, the χ² of the edges so far at
@@ -516,8 +518,9 @@ def busy(count: int) -> Iterator[list[subprocess.Popen[bytes]]]:
 
 
 def _default_priority() -> None:
-    """The load runs at nice 0 whatever ``--nice`` gave the benchmark (in the child, before
-    it starts: a lower priority needs no privilege)."""
+    """The load runs at SCHED_OTHER and nice 0 whatever ``--nice`` or ``--fifo`` gave the
+    benchmark (in the child, before it starts: a lower priority needs no privilege)."""
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     os.setpriority(os.PRIO_PROCESS, 0, 0)
 
 
@@ -914,7 +917,10 @@ def _busy_words(count: int) -> str:
     """``--busy`` in words, e.g. "2 CPU-bound processes beside every run", and the runs'
     priority when ``--nice`` changed it."""
     nice = os.getpriority(os.PRIO_PROCESS, 0)
+    fifo = os.sched_getparam(0).sched_priority if os.sched_getscheduler(0) == os.SCHED_FIFO else 0
     runs = f"; the H₂O and iSAM2 runs at nice {nice}, the load at 0" if nice else ""
+    if fifo:
+        runs = f"; the H₂O and iSAM2 runs at SCHED_FIFO {fifo}, the load at SCHED_OTHER"
     if not count:
         return "no CPU-bound process added beside the runs" + runs
     return f"{count} CPU-bound process{'es' if count > 1 else ''} beside every run" + runs
@@ -1041,7 +1047,18 @@ def main(argv: list[str] | None = None) -> int:
                         help="run H₂O and iSAM2 at nice N, the --busy load at 0, as a robot "
                              "gives its localization priority over perception (negative N "
                              "needs CAP_SYS_NICE; default 0)")
+    parser.add_argument("--fifo", type=int, default=0, metavar="P",
+                        help="run H₂O and iSAM2 under SCHED_FIFO at priority P (1-99), the "
+                             "--busy load under SCHED_OTHER, as a robot runs its real-time "
+                             "nodes (needs CAP_SYS_NICE; default 0: off)")
     args = parser.parse_args(argv)
+    if not 0 <= args.fifo <= 99:
+        parser.error("--fifo must be in 0-99")
+    if args.fifo:
+        try:  # Linux: the calling thread's policy, which the runs started from it inherit
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.fifo))
+        except OSError as err:
+            parser.error(f"--fifo {args.fifo}: {err} (SCHED_FIFO needs CAP_SYS_NICE)")
     if args.nice > 0:
         parser.error("--nice must be 0 or negative: the runs at or above the load's priority")
     if args.nice:

@@ -104,26 +104,34 @@ def test_busy_runs_n_cpu_bound_processes_and_leaves_none() -> None:
         assert none == []
 
 
-def test_the_load_runs_at_the_default_priority_below_runs_given_a_higher_one() -> None:
-    """``--nice -3``: the benchmark (and the runs it starts) at nice -3, its load at 0."""
+@pytest.mark.parametrize(("setting", "words"), [
+    ("os.setpriority(os.PRIO_PROCESS, 0, -3)", "at nice -3, the load at 0"),
+    ("os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(5))",
+     "at SCHED_FIFO 5, the load at SCHED_OTHER"),
+])
+def test_the_load_runs_at_the_default_priority_below_runs_given_a_higher_one(
+        setting: str, words: str) -> None:
+    """``--nice -3`` / ``--fifo 5``: the benchmark (and the runs it starts) above the
+    default priority, its load at the default (SCHED_OTHER, nice 0)."""
     child = ("import os, sys\n"
              "sys.path.insert(0, sys.argv[1])\n"
              "import online\n"
              "try:\n"
-             "    os.setpriority(os.PRIO_PROCESS, 0, -3)\n"
+             f"    {setting}\n"
              "except PermissionError:\n"
              "    sys.exit(3)\n"
              "with online.busy(1) as procs:\n"
-             "    print(os.getpriority(os.PRIO_PROCESS, procs[0].pid),\n"
-             "          os.getpriority(os.PRIO_PROCESS, 0), online._busy_words(1))\n")
+             "    pid = procs[0].pid\n"
+             "    print(os.getpriority(os.PRIO_PROCESS, pid), os.sched_getscheduler(pid),\n"
+             "          online._busy_words(1))\n")
     done = subprocess.run([sys.executable, "-c", child, str(Path(online.__file__).parent)],
                           capture_output=True, text=True, timeout=60)
     if done.returncode == 3:
-        pytest.skip("a negative nice needs CAP_SYS_NICE")
+        pytest.skip("a higher priority needs CAP_SYS_NICE")
     assert done.returncode == 0, done.stderr
-    load, runs, words = done.stdout.split(maxsplit=2)
-    assert (int(load), int(runs)) == (0, -3)
-    assert "at nice -3, the load at 0" in words
+    nice, policy, said = done.stdout.split(maxsplit=2)
+    assert (int(nice), int(policy)) == (0, os.SCHED_OTHER)
+    assert words in said
 
 
 @pytest.mark.parametrize("error", [RuntimeError, KeyboardInterrupt])
