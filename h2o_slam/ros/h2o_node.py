@@ -50,6 +50,8 @@ from h2o_slam.core.graph import EdgeKind, edge_chi2
 from h2o_slam.core.timing import CallbackTimes, CostShare, InputHealth
 from h2o_slam.ros.mapper import Mapper, restore
 from h2o_slam.ros.node_config import H2ONodeConfig
+from h2o_slam.ros.realtime import fifo_callbacks
+from h2o_slam.ros.realtime import restore as restore_scheduling
 from ros_node_base.main import run_node
 from ros_node_base.node import NodeBase
 
@@ -107,6 +109,11 @@ class H2ONode(NodeBase[H2ONodeConfig]):
         # beside the executor: the node answers at once and holds its inputs until then.
         # Started before the mapper, whose solver would otherwise load them here.
         warmup.warm_up_in_background()
+        # After the warm-up thread started (it keeps the default policy: loading the kernels
+        # at a real-time priority would hold a core from everything else for seconds).
+        self.realtime = fifo_callbacks(self.config.realtime_priority)
+        if self.config.realtime_priority and not self.realtime.applied:
+            self.get_logger().warning(f"realtime_priority: {self.realtime.words}")
         self._started_s = time.perf_counter()
         self.mapper = self._start_mapper()
         self._datum = self._configured_datum()
@@ -123,6 +130,7 @@ class H2ONode(NodeBase[H2ONodeConfig]):
         """
         self.mapper.close()
         super().destroy_node()
+        restore_scheduling(self.realtime)
         gc.unfreeze()
         gc.collect()
 
@@ -221,8 +229,9 @@ class H2ONode(NodeBase[H2ONodeConfig]):
             f"{out['map_to_odom']}{tf}, {out['diagnostics']}; budget_ms {budget:g} "
             f"({solves}), robust {str(c.mapper.robust).lower()}, queue depths "
             f"{c.input_queue_depth} (odometry, GPS) / "
-            f"{c.loop_closure_queue_depth} (loop closures), map_frame "
-            f"{c.map_frame}, map_file {c.map_file or 'unset'}")
+            f"{c.loop_closure_queue_depth} (loop closures), callbacks at "
+            f"{self.realtime.words if self.realtime.applied else 'the default policy'}, "
+            f"map_frame {c.map_frame}, map_file {c.map_file or 'unset'}")
 
     def on_config_change(self, old: H2ONodeConfig) -> None:
         """The mapper takes its new settings whole (a budget, keyframe or gate change)."""
@@ -528,6 +537,7 @@ class H2ONode(NodeBase[H2ONodeConfig]):
             "paused": self.paused,
             "warming_up": False,
             "held_while_warming": self.held_while_warming,
+            "scheduling": self.realtime.words,
             "tf_available": self.tf_message is not None,
             "gps_datum": "unset" if self._datum is None else
             f"{self._datum.lat_deg:.8f}, {self._datum.lon_deg:.8f}",
@@ -563,7 +573,8 @@ class H2ONode(NodeBase[H2ONodeConfig]):
             "inputs held; a first start after an install that did not compile them takes a "
             "minute or more)",
             values={"warming_up": True, "held_inputs": len(self._held),
-                    "held_while_warming": self.held_while_warming, "paused": self.paused},
+                    "held_while_warming": self.held_while_warming, "paused": self.paused,
+                    "scheduling": self.realtime.words},
             hardware_id="h2o_slam")
 
     def publish_diagnostics(self, refresh_chi2: bool = True) -> None:

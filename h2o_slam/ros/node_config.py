@@ -84,6 +84,12 @@ class H2ONodeConfig:
         10.0, "Solver time of an idle step, for edges that did not fit into the input "
         "callbacks' budget and for merging exact solutions; 0 disables.",
         bounds=(0.0, 1000.0), runtime=True)
+    realtime_priority: int = parameter(
+        0, "Run every callback under SCHED_FIFO at this priority (1-99; 0: the default "
+        "policy). On a computer busy with CPU-bound work at the default priority the kernel "
+        "cuts a callback mid-budget for a scheduler tick, whatever its nice value; needs "
+        "CAP_SYS_NICE or an rtprio limit (refused: a warning, and the default policy).",
+        bounds=(0, 99))
     idle_period: float = parameter(
         0.05, "Seconds between idle steps; they run only while edges wait or the map is not "
         "at a converged solution.", bounds=(0.001, 10.0))

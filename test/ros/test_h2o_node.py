@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import gc
 import math
+import os
+import subprocess
+import sys
 import time
 import weakref
 from typing import Any
@@ -24,6 +27,7 @@ from visualization_msgs.msg import MarkerArray
 import msg_adapters as ma
 from h2o_slam.core.errors import InputError
 from h2o_slam.core.graph import edge_chi2
+from h2o_slam.ros import realtime
 from h2o_slam.ros.h2o_node import H2ONode
 from hybrid_vo.sim import world
 from hybrid_vo.sim.messages import DEFAULT_START_NS, StreamMessage, drive_messages
@@ -492,6 +496,44 @@ def test_inputs_while_the_kernels_load_are_held_and_then_all_handled(
     diag = latest_diagnostics(harness, out, node)
     assert diag["warming_up"] == "false"
     assert int(diag["held_while_warming"]) == len(messages)
+
+
+def test_realtime_priority_runs_the_callbacks_under_fifo_until_the_node_ends(
+        harness: Harness) -> None:
+    """``realtime_priority`` 3: the thread that builds and spins the node is under
+    SCHED_FIFO 3 (said in /diagnostics), a process it starts (the exact solver's worker) is
+    not, and destroying the node gives the thread its policy back."""
+    probe = realtime.fifo_callbacks(1)
+    realtime.restore(probe)
+    if not probe.applied:
+        pytest.skip(probe.words)
+    try:
+        node, out = start(harness, realtime_priority=3)
+        assert os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO
+        assert os.sched_getparam(0).sched_priority == 3
+        child = subprocess.run(
+            [sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"],
+            capture_output=True, text=True, timeout=60, check=True)
+        assert int(child.stdout) == os.SCHED_OTHER
+        assert latest_diagnostics(harness, out, node)["scheduling"] == "SCHED_FIFO 3"
+        harness.executor.remove_node(node)
+        node.destroy_node()
+        assert os.sched_getscheduler(0) == os.SCHED_OTHER
+    finally:  # the rest of the session at the default policy, whatever failed above
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
+def test_a_refused_realtime_priority_leaves_the_default_policy_and_says_why(
+        harness: Harness, monkeypatch: pytest.MonkeyPatch) -> None:
+    def refuse(*_: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    node, out = start(harness, realtime_priority=3)
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER
+    said = latest_diagnostics(harness, out, node)["scheduling"]
+    assert said.startswith("SCHED_FIFO 3 refused (Operation not permitted")
+    assert not node.realtime.applied and node.realtime.saved is None
 
 
 def test_the_pose_after_a_merge_carries_the_new_correction(harness: Harness,
