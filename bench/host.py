@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from mapper_stream import host_steal_ticks
 from online import busy
 from results_md import DEFAULT_RESULTS, command, publish
 
@@ -55,15 +56,6 @@ class Row:
     wall_ms: np.ndarray
     cpu_ms: np.ndarray
     steal_ms: float
-
-
-def steal_ticks() -> int:
-    """The host's steal counter (all CPUs, clock ticks; 0 where ``/proc/stat`` has none)."""
-    try:
-        fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()
-    except OSError:
-        return 0
-    return int(fields[8]) if len(fields) > 8 else 0
 
 
 def _fixed_work(repeats: int, a: np.ndarray) -> float:
@@ -98,13 +90,13 @@ def measure(name: str, burst: Callable[[], object], seconds: float) -> Row:
     """``burst()`` once every ``PERIOD_MS`` for ``seconds``."""
     count = max(1, int(seconds * 1e3 / PERIOD_MS))
     wall, cpu = np.zeros(count), np.zeros(count)
-    ticks = steal_ticks()
+    ticks = host_steal_ticks()
     for i in range(count):
         time.sleep(PERIOD_MS * 1e-3 * 0.8)
         c, t = time.thread_time(), time.perf_counter()
         burst()
         wall[i], cpu[i] = time.perf_counter() - t, time.thread_time() - c
-    steal = 1e3 * (steal_ticks() - ticks) / os.sysconf("SC_CLK_TCK")
+    steal = 1e3 * (host_steal_ticks() - ticks) / os.sysconf("SC_CLK_TCK")
     return Row(name, 1e3 * wall, 1e3 * cpu, steal)
 
 

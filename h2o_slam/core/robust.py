@@ -1037,7 +1037,7 @@ def _batch_chi2(r: Array, J: Array, var: np.ndarray, groups: list[np.ndarray],
         try:
             columns = _map_columns(solve, J, var, unknowns)
         except np.linalg.LinAlgError:  # singular: a direction no edge constrains
-            columns = None
+            pass  # the edges' own covariance alone
     out = np.zeros(len(groups))
     sizes = np.array([len(g) for g in groups])
     for size in np.unique(sizes):
@@ -1100,7 +1100,8 @@ def _map_columns(split: Split, J: Array, var: np.ndarray, size: int) -> tuple[Ar
     # Column-major, as the solver takes and gives it (no transposing copies).
     B = np.zeros((size, k * rows), order="F")
     for j in range(rows):
-        # add: an edge's two ends may be one unknown block (a self-loop is refused earlier)
+        # add, not assign: a self-loop's two ends are one unknown block (graphs and the
+        # mapper refuse them, the solver's own API does not)
         np.add.at(B, (var[e, u], e * rows + j), J[e, j, u])
     Y, Z = split(B)
     return Y.reshape(size, k, rows), Z.reshape(size, k, rows)
