@@ -32,7 +32,8 @@ def test_solves_and_reports(planar_file, tmp_path, mode, capsys):
     assert code == 0
     data = json.loads(report.read_text())
     assert json.loads(capsys.readouterr().out) == data
-    for key in ("nodes", "edges", "chi2_initial", "chi2_final", "chi2_per_pass", "wall_s"):
+    for key in ("nodes", "edges", "chi2_initial", "chi2_final", "chi2_per_pass", "wall_s",
+                "load_s"):
         assert key in data
     graph = read_g2o(planar_file)
     solved = read_g2o(out)
@@ -164,7 +165,7 @@ def test_lago_report_names_no_start(planar_file, tmp_path, capsys):
                  "--report", str(report), "-q"]) == 0
     data = json.loads(report.read_text())
     assert (data["mode"], data["init"], data["passes"]) == ("lago", None, 0)
-    assert data["iterations"] is None
+    assert data["iterations"] is None and data["load_s"] == 0.0  # no kernel to load
 
 
 @pytest.mark.parametrize("metric", METRICS)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from h2o_slam.core import geometry as geo
@@ -615,3 +615,36 @@ def test_an_explicit_solve_also_graduates_afresh_and_keeps_the_lower_cost(
     assert np.all(outcome.weights[planted.outlier] == 0.0)
     assert np.all(outcome.weights[~planted.outlier] == 1.0)
     np.testing.assert_allclose(solver.world_poses()[1], optimum.t, atol=1e-6)
+
+
+@settings(max_examples=30, deadline=None)
+@given(side=st.integers(64, 120), rank_cut=st.integers(0, 3), seed=st.integers(0, 2**31))
+def test_large_quadratic_forms_equal_the_pseudo_inverse(side, rank_cut, seed):
+    """``rᵀ S⁺ r`` of a large joint covariance by Cholesky equals the pseudo-inverse's, and a
+    singular ``S`` (an edge the map cannot do without) falls back to the pseudo-inverse."""
+    from h2o_slam.core.robust import _quadratic_forms
+
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((2, side, side - rank_cut))
+    S = A @ A.transpose(0, 2, 1) / side
+    r = np.einsum("kij,kj->ki", A, rng.standard_normal((2, side - rank_cut)))  # in S's range
+    want = np.einsum("ki,kij,kj->k", r, np.linalg.pinv(S, hermitian=True), r)
+    np.testing.assert_allclose(_quadratic_forms(S, r), want, rtol=1e-6)
+
+
+def test_a_large_place_is_scored_as_the_pseudo_inverse_scores_it(solved_world, monkeypatch):
+    """A place of many closures (its joint covariance past ``CHOLESKY_FROM``) scores the
+    deletion χ² the pseudo-inverse gives."""
+    from h2o_slam.core import robust
+
+    solver, closures = solved_world
+    place = closures[: robust.CHOLESKY_FROM // solver.p + 2]
+    pinv, large = np.linalg.pinv, []
+    monkeypatch.setattr(np.linalg, "pinv", lambda S, **kw: large.append(S.shape[-1] >= 64)
+                        or pinv(S, **kw))
+    fast = robust._group_chi2([place], solver, 128, -1.0)
+    assert not any(large)  # factored by Cholesky
+    monkeypatch.undo()
+    monkeypatch.setattr(robust, "CHOLESKY_FROM", 10**9)
+    slow = robust._group_chi2([place], solver, 128, -1.0)
+    np.testing.assert_allclose(fast, slow, rtol=1e-8)
