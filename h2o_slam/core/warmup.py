@@ -28,7 +28,6 @@ from h2o_slam.core.exact import converge_exact
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, make_graph
 from h2o_slam.core.jacobians import chain_jacobians, endpoint_jacobians
 from h2o_slam.core.loop_spread import dead_reckon, spread_loop
-from h2o_slam.core.robust import RobustConfig
 from h2o_slam.core.solver import H2OSolver
 from h2o_slam.core.tree import PoseTree, spanning_parents
 
@@ -155,28 +154,11 @@ def _robust_solve() -> None:
     lago_restart(graph)(np.ones(graph.num_edges))
 
 
-def warm_up_exact(planar: bool, init: str = "tree", robust: RobustConfig | None = None
-                  ) -> float:
-    """Load what an exact solve of a graph of this kind uses on first use (its kernels, the
-    imports a robust solve defers) by solving a ring of twelve poses with one false loop
-    closure the same way; returns the seconds it took.
-
-    ``h2o-solve`` runs it before its clock starts, as GTSAM's library is loaded before its
-    ``optimize()`` is timed: otherwise a solve of a 125-pose graph counts 0.3-0.5 s of
-    loading (numba's first kernel alone sets up its code generator, ~0.2 s) against its
-    tens of milliseconds of work.
-    """
-    # Imported here: modes imports online, which imports this module.
-    from h2o_slam.core.modes import solve_exact
-
-    start = time.perf_counter()
-    solve_exact(_false_ring(planar), 5, init=init, robust=robust)
-    return time.perf_counter() - start
-
-
-def _false_ring(planar: bool, n: int = 12) -> PoseGraph:
+def false_ring(planar: bool, n: int = 12) -> PoseGraph:
     """``n`` poses on a circle, each joined to the next (the last to the first: the true
-    loop closure), and a false closure across the ring whose measurement is 5 m off."""
+    loop closure), and a false closure across the ring whose measurement is 5 m off: a
+    robust exact solve of it runs every path a solve of a graph of the same kind runs
+    (``h2o-solve`` loads exact mode's kernels with it before its clock starts)."""
     yaw = np.arange(n, dtype=np.float64) * (2.0 * np.pi / n)
     radius = 0.5 / np.sin(np.pi / n)  # 1 m steps
     # Off the measurements' ring a little (3-D: out of its plane too), so that every

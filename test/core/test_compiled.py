@@ -223,30 +223,29 @@ def test_every_install_of_the_same_sources_shares_one_cache(tmp_path: Path) -> N
 
 
 #: Run in a fresh process (kernels load once per process, and other tests load them all):
-#: prints the kernels that loaded a new signature during a solve after the exact warm-up.
+#: prints the kernels that loaded a new signature during a solve after h2o-solve's loading.
 _LOADED_DURING_SOLVE = """
-import sys
-from h2o_slam.core import warmup
+import gc, sys
+from numba.core.registry import CPUDispatcher
+from h2o_slam.app.cli.solve import SolveOptions, _load
 from h2o_slam.core.modes import solve_exact
 from h2o_slam.core.robust import RobustConfig
 from h2o_slam.io.synthetic import grid3d, manhattan
 
 planar, init = sys.argv[1] == "planar", sys.argv[2]
-warmup.warm_up_exact(planar, init, RobustConfig())
-from numba.core.registry import CPUDispatcher
-import gc
+graph = (manhattan if planar else grid3d)(60, seed=3).graph
+_load(graph, SolveOptions(init=init))
 kernels = [k for k in gc.get_objects() if isinstance(k, CPUDispatcher)]
 before = {k: len(k.signatures) for k in kernels}
-graph = (manhattan if planar else grid3d)(60, seed=3).graph
 solve_exact(graph, init=init, robust=RobustConfig())
 print(" ".join(k.__name__ for k in kernels if len(k.signatures) != before[k]))
 """
 
 
 @pytest.mark.parametrize(("kind", "init"), [("planar", "tree"), ("3-D", "chordal")])
-def test_an_exact_solve_after_its_warm_up_loads_no_kernel(kind: str, init: str) -> None:
-    """``h2o-solve`` times exact mode after :func:`warmup.warm_up_exact`: a robust solve of
-    a graph of the same kind then loads nothing inside the clock."""
+def test_an_exact_solve_after_its_loading_loads_no_kernel(kind: str, init: str) -> None:
+    """``h2o-solve`` loads exact mode's kernels before its clock starts: a robust solve of a
+    graph of the same kind then loads nothing inside the clock."""
     root = Path(compiled.__file__).parents[2]
     done = subprocess.run([sys.executable, "-c", _LOADED_DURING_SOLVE, kind, init], cwd=root,
                           check=True, capture_output=True, text=True, timeout=300)
@@ -254,13 +253,12 @@ def test_an_exact_solve_after_its_warm_up_loads_no_kernel(kind: str, init: str) 
 
 
 @pytest.mark.parametrize("planar", [True, False])
-def test_the_exact_warm_up_ring_drops_its_false_closure(planar: bool) -> None:
-    """The warm-up's ring runs the robust solve's paths: its false closure (the last edge) is
-    dropped, the true one closing the ring kept."""
+def test_the_loading_ring_drops_its_false_closure(planar: bool) -> None:
+    """The ring exact mode's loading solves runs the robust solve's paths: its false closure
+    (the last edge) is dropped, the true one closing the ring kept."""
     from h2o_slam.core.modes import solve_exact
     from h2o_slam.core.robust import RobustConfig
 
-    ring = warmup._false_ring(planar)
-    result = solve_exact(ring, init="tree", robust=RobustConfig())
+    result = solve_exact(warmup.false_ring(planar), init="tree", robust=RobustConfig())
     assert result.weights is not None
     np.testing.assert_array_equal(result.weights[-2:], [1.0, 0.0])
