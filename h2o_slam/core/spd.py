@@ -206,6 +206,8 @@ class _Cholmod:
         d_inv = self._cvxopt.matrix(1.0, (self._A.size[0], 1))
         self._cholmod.solve(self._F, d_inv, sys=6)  # D⁻¹ (ones for an LLᵀ factor)
         scale = np.asarray(memoryview(d_inv)).ravel()
+        if np.all(scale == 1.0):  # an LLᵀ factor (every supernodal one): Z is Y, no copy
+            return Y, Y
         return Y, Y * (scale[:, None] if Y.ndim == 2 else scale)
 
     def _numeric(self, data: Array) -> None:
