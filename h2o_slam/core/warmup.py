@@ -155,10 +155,11 @@ def _robust_solve() -> None:
 
 
 def false_ring(planar: bool, n: int = 12) -> PoseGraph:
-    """``n`` poses on a circle, each joined to the next (the last to the first: the true
-    loop closure), and a false closure across the ring whose measurement is 5 m off: a
-    robust exact solve of it runs every path a solve of a graph of the same kind runs
-    (``h2o-solve`` loads exact mode's kernels with it before its clock starts)."""
+    """``n`` poses on a circle of 1 m steps, each joined to the next (the last to the
+    first: the true loop closure), and a false closure across the ring (5 m straight
+    ahead, where the two poses, 3.9 m apart, face opposite ways): a robust exact solve of
+    it runs every path a solve of a graph of the same kind runs (``h2o-solve`` loads exact
+    mode's kernels with it before its clock starts)."""
     yaw = np.arange(n, dtype=np.float64) * (2.0 * np.pi / n)
     radius = 0.5 / np.sin(np.pi / n)  # 1 m steps
     # Off the measurements' ring a little (3-D: out of its plane too), so that every
