@@ -136,21 +136,11 @@ def _robust_solve() -> None:
     that the first inline solve of a node paid inside one callback."""
     from scipy.sparse.csgraph import connected_components
 
-    from h2o_slam.core.graph import make_graph
     from h2o_slam.core.robust import chdtri, lago_restart
 
     chdtri(np.array([3.0]), 0.01)
     connected_components(np.eye(2), directed=False)
-    # A square walked twice around: eight odometry edges and a loop closure.
-    n = 9
-    yaw = np.arange(n) * np.pi / 2
-    R = geo.yaw_to_matrix(yaw)
-    t = np.zeros((n, 3))
-    a, b = np.array([*range(n - 1), 0]), np.array([*range(1, n), 4])
-    turn = geo.yaw_to_matrix(np.full(n, np.pi / 2))
-    step = np.tile([1.0, 0.0, 0.0], (n, 1))
-    graph = make_graph(True, np.arange(n), R, t, np.full(n, EdgeKind.RELATIVE), a, b, turn,
-                       step, np.tile(np.eye(6), (n, 1, 1)))
+    graph = false_ring(True)
     lago_restart(graph)(np.ones(graph.num_edges))
 
 
