@@ -51,6 +51,7 @@ from h2o_slam.core.exact import ExactSystem, converge_exact, settled
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, edge_chi2, odometry_chain
 from h2o_slam.core.jacobians import endpoint_jacobians
+from h2o_slam.core.selinv import MAX_WORK, SelectedInverse, factor_cost, selected_inverse
 from h2o_slam.core.solver import H2OSolver
 from h2o_slam.core.spd import SPDFactor, upper
 
@@ -675,7 +676,7 @@ def _incompatible_place(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array
     100 grouped false closures: accepting a group of 8 cost less than leaving it out, while
     its joint deletion χ² was 1.4 times the quantile and no true place's above 0.2)."""
     inside = np.flatnonzero(free & (w > 0.5))
-    if len(inside) * solver.num_nodes * solver.p > DELETION_WORK:
+    if not _every_scored(solver, inside):
         return None
     closures = inside[solver.kind[inside] == EdgeKind.RELATIVE]
     # A revisit, not the chain of revisits that clustering joins on a much-travelled
@@ -727,11 +728,11 @@ def _drop_strained(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, ite
     strained = ratio > STRAIN
     order = [i for i in np.argsort(-ratio)[:MAX_TRIES] if strained[i]]
     places: list[np.ndarray] = []
-    every = len(inside) * solver.num_nodes * solver.p <= DELETION_WORK
+    every = _every_scored(solver, inside)
     if every:
         shared = _places(solver, inside)
-        # Each closure alone and each place in one scoring: a place's columns of H⁻¹ are
-        # its closures' own (half the solves of scoring them apart).
+        # Each closure alone and each place in one scoring: a place's entries of H⁻¹ are
+        # its closures' own.
         joint = group_chi2(solver, [inside[[i]] for i in range(len(inside))]
                            + [inside[g] for g in shared], sign=-1.0)
         # The deletion χ² is, to first order, the dropped edge's innovation after the drop:
@@ -755,6 +756,14 @@ def _drop_strained(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, ite
                             False, restart)
         moved |= kept
     return moved
+
+
+def _every_scored(solver: H2OSolver, inside: np.ndarray) -> bool:
+    """Whether the deletion χ² of every one of the ``inside`` closures is affordable: from
+    the selected inverse (:func:`_selected_pays`), or as columns of ``H⁻¹`` under
+    :data:`DELETION_WORK`."""
+    return (len(inside) * solver.num_nodes * solver.p <= DELETION_WORK
+            or _selected_pays(solver, None, math.inf))
 
 
 def _significant_drops(solver: H2OSolver, inside: np.ndarray, c2: Array,
@@ -972,21 +981,158 @@ class _Scored:
 
 def _group_chi2(groups: list[np.ndarray], solver: H2OSolver, chunk: int, sign: float
                 ) -> Array:
-    """:func:`group_chi2`, every group scored.
+    """:func:`group_chi2`, every group scored, each the cheapest way that serves: a group
+    of more than :data:`LEFT_OUT_FROM` edges by one solve with them left out
+    (:func:`_left_out_chi2`); the others from the selected inverse
+    (:func:`_selected_chi2`) where it is affordable and pays; what is left from columns of
+    ``H⁻¹`` (:func:`_columns_chi2`)."""
+    edges, member = np.unique(np.concatenate(groups).astype(np.int64), return_inverse=True)
+    members = np.split(member.ravel(), np.cumsum([len(g) for g in groups])[:-1])
+    r, J, var, H = _whitened(solver, edges)
+    out = np.full(len(groups), np.nan)
+    if H is not None:
+        for i in (i for i, m in enumerate(members) if len(m) > LEFT_OUT_FROM):
+            out[i] = _left_out_chi2(H, r[members[i]], J[members[i]], var[members[i]], sign)
+        small = [i for i, m in enumerate(members) if len(m) <= LEFT_OUT_FROM]
+        if small and _selected_pays(solver, H, len(np.unique(np.concatenate(
+                [members[i] for i in small])))):
+            out[small] = _selected_chi2(r, J, var, [members[i] for i in small], H, sign)
+    rest = np.flatnonzero(np.isnan(out))
+    if len(rest):
+        out[rest] = _columns_chi2(r, J, var, [members[i] for i in rest], H, chunk, sign)
+    return out
+
+
+#: Groups of more edges than this are scored by :func:`_left_out_chi2` (one factorization),
+#: not from ``H⁻¹``'s entries at every pair of their ends (intel's revisit of 195 closures:
+#: 585 columns of ``H⁻¹``, or a selected inverse that fills in a dense 1,170² block).
+LEFT_OUT_FROM = 32
+
+
+def _left_out_chi2(H: sp.csc_matrix, r: Array, J: Array, var: np.ndarray, sign: float
+                   ) -> float:
+    """The group χ² of edges with whitened residuals ``r`` and Jacobians ``J`` (unknowns
+    ``var``) by one solve (Woodbury's identity): with ``S = I + s J H⁻¹ Jᵀ``,
+    ``rᵀ S⁻¹ r = rᵀr − s bᵀ (H + s JᵀJ)⁻¹ b``, ``b = Jᵀr``: the edges left out of ``H``
+    (``s`` −1, deletion) or put in (``s`` +1, innovation). ``nan`` where that matrix does not
+    factor (the group alone holds some unknowns)."""
+    held = var < 0
+    inner = np.einsum("kpi,kpj->kij", J, J)  # each edge's JᵀJ over its 2p unknowns
+    pair = ~held[:, :, None] & ~held[:, None, :]
+    rows = np.broadcast_to(var[:, :, None], inner.shape)[pair]
+    cols = np.broadcast_to(var[:, None, :], inner.shape)[pair]
+    block = sp.csc_matrix((inner[pair], (rows, cols)), shape=H.shape)
+    b = np.zeros(H.shape[0])
+    np.add.at(b, var[~held], np.einsum("kpi,kp->ki", J, r)[~held])
+    changed = upper(H + sp.triu(H, k=1).T + sign * block)
+    try:
+        x = SPDFactor(changed.indptr, changed.indices).solve(changed.data, b)
+    except np.linalg.LinAlgError:
+        return math.nan
+    return float(np.sum(r * r) - sign * b @ x)
+
+
+def _columns_chi2(r: Array, J: Array, var: np.ndarray, members: list[np.ndarray],
+                  H: sp.csc_matrix | None, chunk: int, sign: float) -> Array:
+    """:func:`group_chi2` of the groups ``members`` (indices into the edges of ``r``, ``J``,
+    ``var``) from columns of ``H⁻¹`` (upper triangle ``H``; ``None``: no unknowns).
 
     A group's columns of ``H⁻¹`` are its edges' own, so each edge is solved once for every
     group it is in: groups that share edges (a closure alone and its place, scored together
     by a settling round) are batched with them (:func:`_batches`)."""
-    edges, member = np.unique(np.concatenate(groups).astype(np.int64), return_inverse=True)
-    members = np.split(member.ravel(), np.cumsum([len(g) for g in groups])[:-1])
-    r, J, var, solve, unknowns = _whitened(solver, edges)
-    out = np.zeros(len(groups))
-    for batch_edges, batch_groups in _batches(members, len(edges), chunk):
-        local = np.full(len(edges), -1, dtype=np.int64)
+    solve, unknowns = _split(H)
+    out = np.zeros(len(members))
+    for batch_edges, batch_groups in _batches(members, len(r), chunk):
+        local = np.full(len(r), -1, dtype=np.int64)
         local[batch_edges] = np.arange(len(batch_edges))
         out[batch_groups] = _batch_chi2(
             r[batch_edges], J[batch_edges], var[batch_edges],
             [local[members[i]] for i in batch_groups], solve, unknowns, sign)
+    return out
+
+
+def _selected_pays(solver: H2OSolver, H: sp.csc_matrix | None, edges: float) -> bool:
+    """Whether scoring ``edges`` edges from the selected inverse of the solver's ``H``
+    (its upper triangle; ``None``: assembled here) is affordable
+    (:data:`~h2o_slam.core.selinv.MAX_WORK`) and cheaper than ``p`` columns of ``H⁻¹``
+    each (``inf`` edges: whenever affordable). Measured once per solver and graph size
+    (weights change the pattern little) from the factor of ``H``: its Takahashi work and
+    its entries, each column's solve a pass over them."""
+    key = (id(solver), solver.num_nodes, solver.num_edges)
+    local = _SelectedCost._local
+    if getattr(local, "key", None) != key:
+        if H is None:
+            H = upper(ExactSystem(solver).normal_equations()[0])
+        local.key, local.cost = key, factor_cost(H)
+    work, entries = local.cost
+    return work <= MAX_WORK and work < SELECTED_PER_ENTRY * edges * solver.p * entries
+
+
+#: Takahashi's recurrence, compiled, against a column's solve with CHOLMOD's factor: the
+#: multiply-adds it may take per entry of ``L`` a column's solve passes over before the
+#: columns are cheaper (measured on intel and a 1,000-pose 3-D grid: ~2 ns a multiply-add
+#: against ~0.5 ns an entry).
+SELECTED_PER_ENTRY = 0.25
+
+
+class _SelectedCost:
+    """The last solver's :func:`~h2o_slam.core.selinv.factor_cost`, per thread."""
+
+    _local = threading.local()
+
+
+def _selected(H: sp.csc_matrix, var: np.ndarray, members: list[np.ndarray]
+              ) -> SelectedInverse | None:
+    """The selected inverse of ``H`` (upper triangle) holding every entry the groups read:
+    ``H``'s pattern widened by each group's pairs of end nodes (``None``: not affordable,
+    or ``H`` does not factor)."""
+    p = var.shape[1] // 2
+    nodes = np.where(var[:, ::p] >= 0, var[:, ::p] // p, -1)  # each edge's two end nodes
+    pairs = _node_pairs(nodes, members)
+    within = np.stack(np.meshgrid(np.arange(p), np.arange(p), indexing="ij"), -1).reshape(-1, 2)
+    return selected_inverse(H, (pairs[:, None, :] * p + within[None, :, :]).reshape(-1, 2))
+
+
+def _node_pairs(nodes: np.ndarray, members: list[np.ndarray]) -> np.ndarray:
+    """Every pair of free end ``nodes`` (``e × 2``, -1: held) of each group's edges, each
+    node with itself too (a block of ``H`` may hold stored zeros that the factor leaves
+    out): ``k × 2``, repeats included. Groups of one size at a time."""
+    sizes = np.array([len(m) for m in members])
+    out = [np.zeros((0, 2), dtype=np.int64)]
+    for size in np.unique(sizes):
+        ends = nodes[np.array([members[i] for i in np.flatnonzero(sizes == size)])]
+        ends = ends.reshape(len(ends), 2 * size)
+        i, j = np.triu_indices(2 * size)
+        pairs = np.stack([ends[:, i], ends[:, j]], axis=-1).reshape(-1, 2)
+        out.append(pairs[np.all(pairs >= 0, axis=1)])
+    return np.unique(np.concatenate(out), axis=0)
+
+
+def _selected_chi2(r: Array, J: Array, var: np.ndarray, members: list[np.ndarray],
+                   H: sp.csc_matrix, sign: float) -> Array:
+    """:func:`group_chi2` of each group (``members``: indices into the edges of ``r``,
+    ``J``, ``var``) from the blocks of ``H⁻¹`` at its edges' ends (:func:`_selected`),
+    groups of one size at a time: ``J_g Σ J_hᵀ`` for every pair of the group's edges;
+    ``nan`` throughout where the selected inverse is not to be had."""
+    out = np.full(len(members), np.nan)
+    selected = _selected(H, var, members)
+    if selected is None:
+        return out
+    p = r.shape[1]
+    sizes = np.array([len(m) for m in members])
+    for size in np.unique(sizes):
+        which = np.flatnonzero(sizes == size)
+        idx = np.array([members[i] for i in which], dtype=np.int64)  # (G, size)
+        G = len(which)
+        try:
+            sigma = selected.blocks(var[idx].reshape(G, size * 2 * p))
+        except KeyError:  # an entry the widened pattern should hold: the columns serve
+            continue
+        Jg = J[idx]  # (G, size, p, 2p)
+        cov = np.einsum("gkij,gkjlm,glnm->gkiln", Jg,
+                        sigma.reshape(G, size, 2 * p, size, 2 * p), Jg, optimize=True)
+        S = np.eye(size * p) + sign * cov.reshape(G, size * p, size * p)
+        out[which] = _quadratic_forms(S, r[idx].reshape(G, size * p))
     return out
 
 
@@ -1083,11 +1229,10 @@ def _quadratic_forms(S: Array, r: Array) -> Array:
 
 
 def _whitened(solver: H2OSolver, edges: np.ndarray
-              ) -> tuple[Array, Array, np.ndarray, Split | None, int]:
+              ) -> tuple[Array, Array, np.ndarray, sp.csc_matrix | None]:
     """Whitened residuals (e × p) and Jacobians on both ends (e × p × 2p) of ``edges``, the
-    unknown of each Jacobian column (-1 where the system holds the end), and the split
-    solve (:meth:`~h2o_slam.core.spd.SPDFactor.split_solve`) with the weighted
-    Gauss–Newton matrix ``H`` (``None`` without unknowns) of its size."""
+    unknown of each Jacobian column (-1 where the system holds the end), and the upper
+    triangle of the weighted Gauss–Newton matrix ``H`` (``None`` without unknowns)."""
     H, _, free_nodes = ExactSystem(solver).normal_equations()
     p, dof = solver.p, solver.dof
     R, x = solver.world_poses()
@@ -1107,11 +1252,16 @@ def _whitened(solver: H2OSolver, edges: np.ndarray
     ends = np.stack([block[a], block[b]], axis=1)
     var = np.where(ends[:, :, None] >= 0, ends[:, :, None] * p + np.arange(p), -1)
     var = var.reshape(len(edges), 2 * p)
-    if not H.shape[0]:
-        return r, J, var, None, 0
-    U = upper(H)
+    return r, J, var, upper(H) if H.shape[0] else None
+
+
+def _split(U: sp.csc_matrix | None) -> tuple[Split | None, int]:
+    """The split solve (:meth:`~h2o_slam.core.spd.SPDFactor.split_solve`) with the matrix
+    whose upper triangle is ``U`` (``None`` without one), and its size."""
+    if U is None:
+        return None, 0
     factor = SPDFactor(U.indptr, U.indices)
-    return r, J, var, lambda B: factor.split_solve(U.data, B), H.shape[0]
+    return (lambda B: factor.split_solve(U.data, B)), U.shape[0]
 
 
 def _map_columns(split: Split, J: Array, var: np.ndarray, size: int) -> tuple[Array, Array]:

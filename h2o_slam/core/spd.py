@@ -24,6 +24,8 @@ Matrices are given as their upper triangle in CSC form with sorted row indices.
 from __future__ import annotations
 
 import importlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -214,21 +216,28 @@ class _Cholmod:
         cvxopt, cholmod = self._cvxopt, self._cholmod
         # cvxopt keeps triplets in column-major order with sorted rows: the CSC order.
         self._A.V = cvxopt.matrix(np.asarray(data, dtype=float))
-        # supernodal = 1: CHOLMOD picks a simplicial or a supernodal factor by the fill it
-        # finds (cvxopt's default, 2, is always supernodal: 1.3-1.6x slower on the sparse
-        # planar systems, e.g. kitti_00 2.4 ms against 1.6). cvxopt's options are global.
-        options = cholmod.options
-        saved = options.get("supernodal")
-        options["supernodal"] = 1
-        try:
+        with _chosen_by_fill(cholmod):
             if self._F is None:
                 self._F = cholmod.symbolic(self._A, uplo="U")
             cholmod.numeric(self._A, self._F)  # ArithmeticError: not positive definite
-        finally:
-            if saved is None:
-                del options["supernodal"]
-            else:
-                options["supernodal"] = saved
+
+
+@contextmanager
+def _chosen_by_fill(cholmod: Any) -> Iterator[None]:
+    """CHOLMOD's option ``supernodal`` at 1 while in the block: it picks a simplicial or a
+    supernodal factor by the fill it finds (cvxopt's default, 2, is always supernodal:
+    1.3-1.6x slower on the sparse planar systems, e.g. kitti_00 2.4 ms against 1.6).
+    cvxopt's options are global, so the caller's setting is put back."""
+    options = cholmod.options
+    saved = options.get("supernodal")
+    options["supernodal"] = 1
+    try:
+        yield
+    finally:
+        if saved is None:
+            del options["supernodal"]
+        else:
+            options["supernodal"] = saved
 
 
 class _QDLDL:
@@ -254,6 +263,51 @@ class _QDLDL:
             return np.column_stack([self._solver.solve(np.ascontiguousarray(col))
                                     for col in rhs.T]).reshape(rhs.shape)
         return np.asarray(self._solver.solve(rhs), dtype=float)
+
+
+def cholesky_factor(upper: sp.csc_matrix
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Array, Array] | None:
+    """CHOLMOD's factor of the matrix whose upper triangle is ``upper`` (CSC, sorted; a
+    stored zero stays in the pattern) as ``(perm, indptr, indices, L, d)``:
+    ``A[perm][:, perm] = L diag(d) Lᵀ`` with ``L`` unit lower triangular in CSC (each
+    column's diagonal first and stored as 1); ``None`` without CHOLMOD or when the matrix
+    does not factor. The factor's own entries, for
+    :func:`~h2o_slam.core.selinv.selected_inverse`; solves go through :class:`SPDFactor`.
+    """
+    if not available("cholmod"):
+        return None
+    import cvxopt
+    from cvxopt import cholmod
+
+    n = upper.shape[0]
+    cols = np.repeat(np.arange(n, dtype=np.int64), np.diff(upper.indptr))
+    A = cvxopt.spmatrix(1.0, cvxopt.matrix(upper.indices.astype(np.int64)),
+                        cvxopt.matrix(cols), (n, n))
+    A.V = cvxopt.matrix(np.asarray(upper.data, dtype=float))
+    try:
+        with _chosen_by_fill(cholmod):
+            F = cholmod.symbolic(A, uplo="U")
+            cholmod.numeric(A, F)
+    except (ArithmeticError, ValueError):
+        return None
+    order = cvxopt.matrix(np.arange(n, dtype=float))
+    cholmod.solve(F, order, sys=7)  # P applied to 0..n-1: the permutation itself
+    d_inv = cvxopt.matrix(1.0, (n, 1))
+    cholmod.solve(F, d_inv, sys=6)  # ones for an LLᵀ factor
+    simplicial = not np.all(np.asarray(d_inv) == 1.0)
+    L = cholmod.getfactor(F)  # F is spent: cvxopt converts it in place
+    indptr, indices, values = (np.array(m).ravel() for m in L.CCS)
+    indptr, indices = indptr.astype(np.int64), indices.astype(np.int64)
+    first = values[indptr[:-1]]  # the diagonal: D (LDLᵀ, packed), or L_jj (LLᵀ)
+    if simplicial:
+        d = first.copy()
+    else:
+        d = first ** 2
+        values = values / np.repeat(first, np.diff(indptr))
+    if not np.all(d > 0.0):  # an LDLᵀ factor of an indefinite matrix: no Cholesky factor
+        return None
+    values[indptr[:-1]] = 1.0
+    return np.asarray(order).ravel().astype(np.int64), indptr, indices, values, d
 
 
 def solve_spd(matrix: Any, rhs: Array, method: str = "auto") -> Array:

@@ -285,6 +285,41 @@ def test_groups_scored_together_equal_each_scored_alone(solved_world, picks, chu
     np.testing.assert_allclose(together, alone, rtol=1e-9, atol=1e-9)
 
 
+@settings(max_examples=25, deadline=None)
+@given(picks=st.lists(st.lists(st.integers(0, 39), min_size=1, max_size=6), min_size=1,
+                      max_size=8),
+       sign=st.sampled_from([1.0, -1.0]))
+def test_the_three_ways_of_scoring_a_group_agree(solved_world, picks, sign):
+    """A group's χ² from columns of H⁻¹, from the selected inverse at its ends' pairs, and
+    by one solve with the group left out (put in, for the innovation) are one number."""
+    from h2o_slam.core import robust
+
+    solver, closures = solved_world
+    groups = [closures[np.unique(p)] for p in picks]
+    edges, member = np.unique(np.concatenate(groups), return_inverse=True)
+    members = np.split(member.ravel(), np.cumsum([len(g) for g in groups])[:-1])
+    r, J, var, H = robust._whitened(solver, edges)
+    columns = robust._columns_chi2(r, J, var, members, H, 128, sign)
+    selected = robust._selected_chi2(r, J, var, members, H, sign)
+    left_out = [robust._left_out_chi2(H, r[m], J[m], var[m], sign) for m in members]
+    np.testing.assert_allclose(selected, columns, rtol=1e-7)
+    np.testing.assert_allclose(left_out, columns, rtol=1e-7)
+
+
+def test_every_closure_is_scored_where_the_selected_inverse_is_affordable(solved_world,
+                                                                           monkeypatch):
+    """Past the columns' work bound, every closure's deletion χ² is still scored where
+    the selected inverse is affordable, and not where it is not."""
+    from h2o_slam.core import robust
+
+    solver, closures = solved_world
+    monkeypatch.setattr(robust, "DELETION_WORK", 0)
+    assert robust._every_scored(solver, closures)
+    monkeypatch.setattr(robust, "MAX_WORK", 0)
+    robust._SelectedCost._local.key = None  # measured again
+    assert not robust._every_scored(solver, closures)
+
+
 def test_false_closures_that_hold_a_stretch_together_are_dropped_together():
     """Two consistent false closures accepted together on a weakly tied walk (few closures,
     noisy odometry): each one's deletion χ² is small (the other holds the bent stretch), so
