@@ -53,7 +53,7 @@ from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, edge_chi2, odometry_
 from h2o_slam.core.jacobians import endpoint_jacobians
 from h2o_slam.core.selinv import MAX_WORK, SelectedInverse, factor_cost, selected_inverse
 from h2o_slam.core.solver import H2OSolver
-from h2o_slam.core.spd import SPDFactor, upper
+from h2o_slam.core.spd import SPDFactor, positions, upper, with_entries
 
 #: ``restart(weights) -> (R, t)``: a start for the solve with these edge weights.
 Restart = Callable[[Array], tuple[Array, Array]]
@@ -759,11 +759,9 @@ def _drop_strained(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, ite
 
 
 def _every_scored(solver: H2OSolver, inside: np.ndarray) -> bool:
-    """Whether the deletion χ² of every one of the ``inside`` closures is affordable: from
-    the selected inverse (:func:`_selected_pays`), or as columns of ``H⁻¹`` under
-    :data:`DELETION_WORK`."""
-    return (len(inside) * solver.num_nodes * solver.p <= DELETION_WORK
-            or _selected_pays(solver, None, math.inf))
+    """Whether every one of the ``inside`` closures gets its deletion χ² (and every place
+    its joint one) in a settling round, or only the strained ones (:data:`DELETION_WORK`)."""
+    return len(inside) * solver.num_nodes * solver.p <= DELETION_WORK
 
 
 def _significant_drops(solver: H2OSolver, inside: np.ndarray, c2: Array,
@@ -807,9 +805,13 @@ def _held_places(inside: np.ndarray, c2: Array, places: list[np.ndarray], joint:
     return [places[i] for i in np.argsort(-ratio)[:MAX_TRIES] if wide[i]]
 
 
-#: Largest (accepted closures × unknowns) for which a drop round computes every closure's
-#: :func:`deletion_chi2` (``2p`` columns of ``H⁻¹`` each, dense: intel's 785 closures ×
-#: 5184 unknowns take ~1 s; manhattan's 1954 × 10500, 5-10 s, are left to the strain test).
+#: Largest (accepted closures × unknowns) for which a drop round scores every closure's
+#: :func:`deletion_chi2` and every place's joint one; beyond it the strained closures are
+#: the candidates. Once the bound on columns of ``H⁻¹`` (intel's 785 closures × 5184
+#: unknowns took ~1 s); with the selected inverse the scoring costs tens of milliseconds,
+#: but more candidates are tried, each a trial solve: every closure scored, manhattan's
+#: robust solve took 0.48 s instead of 0.22, parking-garage's 1.74 instead of 0.39, the
+#: same maps.
 DELETION_WORK = 1e7
 
 
@@ -830,15 +832,34 @@ def _clusters(a: np.ndarray, b: np.ndarray, ratio: Array) -> list[np.ndarray]:
     """Dropped closures grouped by place (both ends within :data:`CLUSTER_SPAN` poses of a
     member's), most plausible group (lowest innovation over ``c̄²``) first: a revisit's
     closures agree with each other, and each alone may not outweigh the map it bent."""
-    k = len(a)
-    near = (np.abs(a[:, None] - a[None, :]) <= CLUSTER_SPAN) & (
-        np.abs(b[:, None] - b[None, :]) <= CLUSTER_SPAN)
     from scipy.sparse.csgraph import connected_components  # on use: see chdtri
 
-    _, label = connected_components(sp.csr_matrix(near), directed=False)
-    groups = [np.flatnonzero(label == g) for g in range(label.max(initial=-1) + 1)]
-    groups.sort(key=lambda g: float(np.min(ratio[g])) if k else 0.0)
+    k = len(a)
+    i, j = _near_pairs(np.asarray(a), np.asarray(b))
+    near = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(k, k))
+    _, label = connected_components(near.tocsr(), directed=False)
+    order = np.argsort(label, kind="stable")
+    groups = np.split(order, np.flatnonzero(np.diff(label[order])) + 1) if k else []
+    groups.sort(key=lambda g: float(np.min(ratio[g])))
     return groups
+
+
+def _near_pairs(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs of closures whose ``a`` ends and ``b`` ends are each within
+    :data:`CLUSTER_SPAN` poses: along ``a``'s order, the pairs ``step`` apart for each
+    ``step`` until none is that close in ``a`` (a comparison of every pair was 1.1 s of
+    parking-garage's robust solve, 4,600 closures)."""
+    order = np.argsort(a, kind="stable")
+    sa, sb = a[order], b[order]
+    rows, cols = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)]
+    for step in range(1, len(a)):
+        near = sa[step:] - sa[:-step] <= CLUSTER_SPAN
+        if not near.any():
+            break
+        pos = np.flatnonzero(near & (np.abs(sb[step:] - sb[:-step]) <= CLUSTER_SPAN))
+        rows.append(order[pos])
+        cols.append(order[pos + step])
+    return np.concatenate(rows), np.concatenate(cols)
 
 
 def _try_move(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, edges: np.ndarray,
@@ -991,8 +1012,9 @@ def _group_chi2(groups: list[np.ndarray], solver: H2OSolver, chunk: int, sign: f
     r, J, var, H = _whitened(solver, edges)
     out = np.full(len(groups), np.nan)
     if H is not None:
-        for i in (i for i, m in enumerate(members) if len(m) > LEFT_OUT_FROM):
-            out[i] = _left_out_chi2(H, r[members[i]], J[members[i]], var[members[i]], sign)
+        large = [i for i, m in enumerate(members) if len(m) > LEFT_OUT_FROM]
+        if large:
+            out[large] = _left_out_chi2(H, r, J, var, [members[i] for i in large], sign)
         small = [i for i, m in enumerate(members) if len(m) <= LEFT_OUT_FROM]
         if small and _selected_pays(solver, H, len(np.unique(np.concatenate(
                 [members[i] for i in small])))):
@@ -1009,27 +1031,46 @@ def _group_chi2(groups: list[np.ndarray], solver: H2OSolver, chunk: int, sign: f
 LEFT_OUT_FROM = 32
 
 
-def _left_out_chi2(H: sp.csc_matrix, r: Array, J: Array, var: np.ndarray, sign: float
-                   ) -> float:
-    """The group χ² of edges with whitened residuals ``r`` and Jacobians ``J`` (unknowns
-    ``var``) by one solve (Woodbury's identity): with ``S = I + s J H⁻¹ Jᵀ``,
-    ``rᵀ S⁻¹ r = rᵀr − s bᵀ (H + s JᵀJ)⁻¹ b``, ``b = Jᵀr``: the edges left out of ``H``
-    (``s`` −1, deletion) or put in (``s`` +1, innovation). ``nan`` where that matrix does not
-    factor (the group alone holds some unknowns)."""
+def _left_out_chi2(H: sp.csc_matrix, r: Array, J: Array, var: np.ndarray,
+                   members: list[np.ndarray], sign: float) -> Array:
+    """The group χ² of each group (``members``: indices into the edges of whitened
+    residuals ``r``, Jacobians ``J``, unknowns ``var``) by one solve (Woodbury's identity):
+    with ``S = I + s J H⁻¹ Jᵀ``, ``rᵀ S⁻¹ r = rᵀr − s bᵀ (H + s JᵀJ)⁻¹ b``, ``b = Jᵀr``: the
+    group left out of ``H`` (``s`` −1, deletion) or put in (``s`` +1, innovation). One
+    symbolic analysis serves every group (``H``'s pattern holds theirs); ``nan`` where the
+    changed matrix does not factor (the group alone holds some unknowns)."""
+    parts = [_normal_block(r[m], J[m], var[m], H.shape[0]) for m in members]
+    rows = np.concatenate([np.zeros(0, dtype=np.int64)] + [q[0] for q in parts])
+    cols = np.concatenate([np.zeros(0, dtype=np.int64)] + [q[1] for q in parts])
+    U = with_entries(H, np.stack([rows, cols], axis=1))
+    factor = SPDFactor(U.indptr, U.indices)
+    out = np.full(len(members), np.nan)
+    for i, (block_rows, block_cols, values, b, rr) in enumerate(parts):
+        data = U.data.copy()
+        np.add.at(data, positions(U, block_rows, block_cols), sign * values)
+        try:
+            x = factor.solve(data, b)
+        except np.linalg.LinAlgError:
+            continue
+        chi2 = rr - sign * float(b @ x)
+        if np.isfinite(chi2) and chi2 >= 0.0:  # else an indefinite matrix "solved"
+            out[i] = chi2
+    return out
+
+
+def _normal_block(r: Array, J: Array, var: np.ndarray, size: int
+                  ) -> tuple[np.ndarray, np.ndarray, Array, Array, float]:
+    """A group's ``JᵀJ`` over its unknowns as upper-triangle entries ``(rows, cols,
+    values)`` (repeats summed where they are added), its ``b = Jᵀr`` of length ``size`` and
+    ``rᵀr``."""
     held = var < 0
     inner = np.einsum("kpi,kpj->kij", J, J)  # each edge's JᵀJ over its 2p unknowns
-    pair = ~held[:, :, None] & ~held[:, None, :]
-    rows = np.broadcast_to(var[:, :, None], inner.shape)[pair]
-    cols = np.broadcast_to(var[:, None, :], inner.shape)[pair]
-    block = sp.csc_matrix((inner[pair], (rows, cols)), shape=H.shape)
-    b = np.zeros(H.shape[0])
+    rows = np.broadcast_to(var[:, :, None], inner.shape)
+    cols = np.broadcast_to(var[:, None, :], inner.shape)
+    keep = ~held[:, :, None] & ~held[:, None, :] & (rows <= cols)
+    b = np.zeros(size)
     np.add.at(b, var[~held], np.einsum("kpi,kp->ki", J, r)[~held])
-    changed = upper(H + sp.triu(H, k=1).T + sign * block)
-    try:
-        x = SPDFactor(changed.indptr, changed.indices).solve(changed.data, b)
-    except np.linalg.LinAlgError:
-        return math.nan
-    return float(np.sum(r * r) - sign * b @ x)
+    return rows[keep], cols[keep], inner[keep], b, float(np.sum(r * r))
 
 
 def _columns_chi2(r: Array, J: Array, var: np.ndarray, members: list[np.ndarray],
@@ -1051,22 +1092,26 @@ def _columns_chi2(r: Array, J: Array, var: np.ndarray, members: list[np.ndarray]
     return out
 
 
-def _selected_pays(solver: H2OSolver, H: sp.csc_matrix | None, edges: float) -> bool:
+def _selected_pays(solver: H2OSolver, H: sp.csc_matrix, edges: int) -> bool:
     """Whether scoring ``edges`` edges from the selected inverse of the solver's ``H``
-    (its upper triangle; ``None``: assembled here) is affordable
+    (its upper triangle) is affordable
     (:data:`~h2o_slam.core.selinv.MAX_WORK`) and cheaper than ``p`` columns of ``H⁻¹``
-    each (``inf`` edges: whenever affordable). Measured once per solver and graph size
+    each. Measured once per solver and graph size
     (weights change the pattern little) from the factor of ``H``: its Takahashi work and
     its entries, each column's solve a pass over them."""
+    if edges < SELECTED_FROM:  # a few columns: not worth a factorization to find out
+        return False
     key = (id(solver), solver.num_nodes, solver.num_edges)
     local = _SelectedCost._local
     if getattr(local, "key", None) != key:
-        if H is None:
-            H = upper(ExactSystem(solver).normal_equations()[0])
         local.key, local.cost = key, factor_cost(H)
     work, entries = local.cost
     return work <= MAX_WORK and work < SELECTED_PER_ENTRY * edges * solver.p * entries
 
+
+#: Fewest edges for which :func:`_selected_pays` weighs the selected inverse (it costs
+#: what 4-50 edges' columns of ``H⁻¹`` do on the public graphs).
+SELECTED_FROM = 16
 
 #: Takahashi's recurrence, compiled, against a column's solve with CHOLMOD's factor: the
 #: multiply-adds it may take per entry of ``L`` a column's solve passes over before the

@@ -31,7 +31,7 @@ import scipy.sparse as sp
 
 from h2o_slam.core.compiled import kernel
 from h2o_slam.core.geometry import Array
-from h2o_slam.core.spd import cholesky_factor
+from h2o_slam.core.spd import cholesky_factor, with_entries
 
 #: Most multiply-adds :func:`selected_inverse` takes on (about 0.2 s compiled; city10000's
 #: 1.5e8 and the 2,500-pose sphere's 5e8 are beyond it).
@@ -72,7 +72,7 @@ def selected_inverse(upper: sp.csc_matrix, pairs: np.ndarray,
     (``k × 2``): ``None`` when it would take more than ``max_work`` multiply-adds, no
     factorization is available (CHOLMOD is not installed), or the matrix does not factor.
     """
-    widened = _widened(upper, pairs)
+    widened = with_entries(upper, pairs)
     factor = cholesky_factor(widened)
     if factor is None:
         return None
@@ -97,29 +97,6 @@ def factor_cost(upper: sp.csc_matrix) -> tuple[float, int]:
         return math.inf, 0
     _, indptr, indices, _, _ = factor
     return float(_work(indptr, indices)), len(indices)
-
-
-def _widened(upper: sp.csc_matrix, pairs: np.ndarray) -> sp.csc_matrix:
-    """``upper`` with explicit zeros at ``pairs`` (either order) where it has no entry."""
-    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    lo, hi = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
-    coo = upper.tocoo()
-    rows = np.concatenate([coo.row, lo])
-    cols = np.concatenate([coo.col, hi])
-    # Ones for the pattern (a zero would be pruned), then the values summed into it.
-    pattern = sp.csc_matrix((np.ones(len(rows)), (rows, cols)), shape=upper.shape)
-    pattern.sort_indices()
-    data = np.zeros(pattern.nnz)
-    pos = _positions(pattern, coo.row, coo.col)
-    np.add.at(data, pos, coo.data)
-    return sp.csc_matrix((data, pattern.indices, pattern.indptr), shape=upper.shape)
-
-
-def _positions(csc: sp.csc_matrix, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """Where each entry ``(rows, cols)`` of ``csc``'s pattern is stored."""
-    key = cols.astype(np.int64) * csc.shape[0] + rows
-    stored = np.repeat(np.arange(csc.shape[1], dtype=np.int64), np.diff(csc.indptr))
-    return np.searchsorted(stored * csc.shape[0] + csc.indices, key)
 
 
 @kernel

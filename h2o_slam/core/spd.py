@@ -310,6 +310,30 @@ def cholesky_factor(upper: sp.csc_matrix
     return np.asarray(order).ravel().astype(np.int64), indptr, indices, values, d
 
 
+def with_entries(upper: sp.csc_matrix, pairs: np.ndarray) -> sp.csc_matrix:
+    """``upper`` (CSC, sorted) with explicit zeros at ``pairs`` (``k × 2``, either order)
+    where it has no entry: a pattern that holds entries a later matrix will have."""
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    lo, hi = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
+    coo = upper.tocoo()
+    rows = np.concatenate([coo.row, lo])
+    cols = np.concatenate([coo.col, hi])
+    # Ones for the pattern (a zero would be pruned), then the values summed into it.
+    pattern = sp.csc_matrix((np.ones(len(rows)), (rows, cols)), shape=upper.shape)
+    pattern.sort_indices()
+    data = np.zeros(pattern.nnz)
+    pos = positions(pattern, coo.row, coo.col)
+    np.add.at(data, pos, coo.data)
+    return sp.csc_matrix((data, pattern.indices, pattern.indptr), shape=upper.shape)
+
+
+def positions(csc: sp.csc_matrix, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Where each entry ``(rows, cols)`` of ``csc``'s pattern is stored."""
+    key = cols.astype(np.int64) * csc.shape[0] + rows
+    stored = np.repeat(np.arange(csc.shape[1], dtype=np.int64), np.diff(csc.indptr))
+    return np.searchsorted(stored * csc.shape[0] + csc.indices, key)
+
+
 def solve_spd(matrix: Any, rhs: Array, method: str = "auto") -> Array:
     """Solve ``matrix · x = rhs`` once for a sparse symmetric positive definite matrix
     (only its upper triangle is read).

@@ -301,23 +301,51 @@ def test_the_three_ways_of_scoring_a_group_agree(solved_world, picks, sign):
     r, J, var, H = robust._whitened(solver, edges)
     columns = robust._columns_chi2(r, J, var, members, H, 128, sign)
     selected = robust._selected_chi2(r, J, var, members, H, sign)
-    left_out = [robust._left_out_chi2(H, r[m], J[m], var[m], sign) for m in members]
+    left_out = robust._left_out_chi2(H, r, J, var, members, sign)
     np.testing.assert_allclose(selected, columns, rtol=1e-7)
     np.testing.assert_allclose(left_out, columns, rtol=1e-7)
 
 
-def test_every_closure_is_scored_where_the_selected_inverse_is_affordable(solved_world,
-                                                                           monkeypatch):
-    """Past the columns' work bound, every closure's deletion χ² is still scored where
-    the selected inverse is affordable, and not where it is not."""
+def test_many_closures_are_scored_from_the_selected_inverse(solved_world, monkeypatch):
+    """Many closures are scored from the selected inverse, a few from columns of H⁻¹, and
+    none from the selected inverse where it is not affordable."""
     from h2o_slam.core import robust
 
     solver, closures = solved_world
-    monkeypatch.setattr(robust, "DELETION_WORK", 0)
-    assert robust._every_scored(solver, closures)
+    paths = []
+
+    def spy(name):
+        scored = getattr(robust, name)
+        return lambda *a: paths.append(name) or scored(*a)
+
+    for name in ("_selected_chi2", "_columns_chi2"):
+        monkeypatch.setattr(robust, name, spy(name))
+    many = [closures[[i]] for i in range(robust.SELECTED_FROM * 4)]
+    robust._group_chi2(many, solver, 128, -1.0)
+    robust._group_chi2(many[:2], solver, 128, -1.0)
     monkeypatch.setattr(robust, "MAX_WORK", 0)
-    robust._SelectedCost._local.key = None  # measured again
-    assert not robust._every_scored(solver, closures)
+    robust._group_chi2(many, solver, 128, -1.0)
+    assert paths == ["_selected_chi2", "_columns_chi2", "_columns_chi2"]
+
+
+@given(ends=st.lists(st.tuples(st.integers(0, 80), st.integers(0, 80), st.floats(0, 1)),
+                     max_size=60))
+def test_places_are_the_components_of_closures_near_at_both_ends(ends):
+    """The clusters found along the closures' order are the connected components of every
+    pair whose ends are both within ``CLUSTER_SPAN``, in the same order."""
+    from scipy.sparse.csgraph import connected_components
+
+    from h2o_slam.core import robust
+
+    a, b, ratio = (np.array([e[i] for e in ends]) for i in range(3))
+    a, b = a.astype(np.int64), b.astype(np.int64)
+    near = (np.abs(a[:, None] - a[None, :]) <= CLUSTER_SPAN) & (
+        np.abs(b[:, None] - b[None, :]) <= CLUSTER_SPAN)
+    _, label = connected_components(near.astype(float), directed=False)
+    want = [np.flatnonzero(label == g) for g in range(label.max(initial=-1) + 1)]
+    want.sort(key=lambda g: float(np.min(ratio[g])))
+    got = robust._clusters(a, b, ratio)
+    assert [g.tolist() for g in got] == [g.tolist() for g in want]
 
 
 def test_false_closures_that_hold_a_stretch_together_are_dropped_together():
