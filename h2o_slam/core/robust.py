@@ -1094,34 +1094,28 @@ def _columns_chi2(r: Array, J: Array, var: np.ndarray, members: list[np.ndarray]
 
 def _selected_pays(solver: H2OSolver, H: sp.csc_matrix, edges: int) -> bool:
     """Whether scoring ``edges`` edges from the selected inverse of the solver's ``H``
-    (its upper triangle) is affordable
-    (:data:`~h2o_slam.core.selinv.MAX_WORK`) and cheaper than ``p`` columns of ``H⁻¹``
-    each. Measured once per solver and graph size
-    (weights change the pattern little) from the factor of ``H``: its Takahashi work and
-    its entries, each column's solve a pass over them."""
-    if edges < SELECTED_FROM:  # a few columns: not worth a factorization to find out
+    (its upper triangle) is cheaper than from their columns of ``H⁻¹``
+    (:data:`SELECTED_FROM`) and affordable (:data:`~h2o_slam.core.selinv.MAX_WORK`,
+    measured once per solver and graph size from the factor of ``H``: weights change its
+    pattern little)."""
+    if edges < SELECTED_FROM:
         return False
     key = (id(solver), solver.num_nodes, solver.num_edges)
     local = _SelectedCost._local
     if getattr(local, "key", None) != key:
-        local.key, local.cost = key, factor_cost(H)
-    work, entries = local.cost
-    return work <= MAX_WORK and work < SELECTED_PER_ENTRY * edges * solver.p * entries
+        local.key, local.work = key, factor_cost(H)[0]
+    return bool(local.work <= MAX_WORK)
 
 
-#: Fewest edges for which :func:`_selected_pays` weighs the selected inverse (it costs
-#: what 4-50 edges' columns of ``H⁻¹`` do on the public graphs).
+#: Fewest edges for which :func:`_group_chi2` scores from the selected inverse: about where
+#: it costs what their columns of ``H⁻¹`` do (measured on intel, a 1,000-pose 3-D grid and
+#: city10000: the same at 8-16 closures, 2-7 times faster at 128).
 SELECTED_FROM = 16
-
-#: Takahashi's recurrence, compiled, against a column's solve with CHOLMOD's factor: the
-#: multiply-adds it may take per entry of ``L`` a column's solve passes over before the
-#: columns are cheaper (measured on intel and a 1,000-pose 3-D grid: ~2 ns a multiply-add
-#: against ~0.5 ns an entry).
-SELECTED_PER_ENTRY = 0.25
 
 
 class _SelectedCost:
-    """The last solver's :func:`~h2o_slam.core.selinv.factor_cost`, per thread."""
+    """The last solver's selected-inverse work (:func:`~h2o_slam.core.selinv.factor_cost`),
+    per thread."""
 
     _local = threading.local()
 
