@@ -51,7 +51,7 @@ from h2o_slam.core.exact import ExactSystem, converge_exact, settled
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, edge_chi2, odometry_chain
 from h2o_slam.core.jacobians import endpoint_jacobians
-from h2o_slam.core.selinv import MAX_WORK, SelectedInverse, factor_cost, selected_inverse
+from h2o_slam.core.selinv import SelectedInverse, selected_inverse
 from h2o_slam.core.solver import H2OSolver
 from h2o_slam.core.spd import SPDFactor, positions, upper, with_entries
 
@@ -504,7 +504,7 @@ def _tightened(solver: H2OSolver, iterations: int, trusted: np.ndarray, c2: Arra
     if np.array_equal(tight, c2):
         return outcome
     outcome.converged = _settle(solver, w, ~trusted, tight, iterations, outcome.history,
-                                restart, cfg.inlier_probability)
+                                restart, cfg.inlier_probability, converged=outcome.converged)
     return outcome
 
 
@@ -542,7 +542,7 @@ def carry_on(solver: H2OSolver, iterations: int, trusted: np.ndarray, c2: Array,
     if np.any(free & (w > 0.5) & (solver_residuals(solver) > c2)):
         return None, doubt
     converged = _settle(solver, w, free, c2, iterations, history, restart,
-                        config.inlier_probability)
+                        config.inlier_probability, converged=converged)
     return RobustOutcome(w, history, 0, converged), doubt
 
 
@@ -569,14 +569,15 @@ def _graduate(solver: H2OSolver, iterations: int, free: np.ndarray, c2: Array,
     # below c̄² while the TLS cost without it is a fifth (measured on a revisit: 135
     # against 26), so edges under strain are tried out even when none exceeds c̄².
     if steps or np.any(free & (r2 > STRAIN * c2)):
+        # After graduation steps the map is at capped solves; without, least squares'.
         converged = _settle(solver, w, free, c2, iterations, history, restart,
-                            cfg.inlier_probability)
+                            cfg.inlier_probability, converged=converged and not steps)
     return RobustOutcome(w, history, steps, converged)
 
 
 def _settle(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, iterations: int,
             history: list[float], restart: Restart | None, probability: float,
-            rounds: int = 10) -> bool:
+            rounds: int = 10, converged: bool = False) -> bool:
     """From the graduation's end to a local minimum of the TLS cost that re-admission cannot
     lower.
 
@@ -591,9 +592,10 @@ def _settle(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, iterations
     Last, a place whose closures are jointly incompatible with the map built without them
     (:func:`_incompatible_place`) is dropped whatever the TLS cost says, and its closures
     stay out of this solve's re-admissions unless one fits the map built without it as an
-    ordinary inlier (:func:`release_ratio`); the moves then run again.
+    ordinary inlier (:func:`release_ratio`); the moves then run again. ``converged``: the
+    map is converged at the weights ``w`` already.
     """
-    converged = _tls_rounds(solver, w, free, c2, iterations, history)
+    converged = _tls_rounds(solver, w, free, c2, iterations, history, converged=converged)
     start = len(history)
     vetoed = np.zeros(len(w), dtype=bool)
     for _ in range(rounds):
@@ -917,10 +919,12 @@ def tls_cost(r2: Array, free: np.ndarray, c2: Array) -> float:
 
 
 def _tls_rounds(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, iterations: int,
-                history: list[float], solve_first: bool = False, rounds: int = 20) -> bool:
+                history: list[float], solve_first: bool = False, rounds: int = 20,
+                converged: bool = False) -> bool:
     """Drop accepted edges whose residual exceeds ``c̄²`` and solve, until none does (each
-    round lowers the TLS cost); dropped edges stay dropped."""
-    converged = False
+    round lowers the TLS cost); dropped edges stay dropped. ``converged``: the map is
+    converged at the weights ``w`` already, so that when no edge is dropped and no weight
+    changes nothing is solved."""
     for i in range(rounds):
         if i or solve_first:
             more, converged = converge_exact(solver, iterations)
@@ -929,8 +933,12 @@ def _tls_rounds(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, iterat
         bad = free & (w > 0.5) & (r2 > c2)
         if i and not bad.any():
             break
-        w[:] = np.where(free, (w > 0.5) & ~bad, 1.0)
+        kept = np.where(free, (w > 0.5) & ~bad, 1.0)
+        if not (i or solve_first) and converged and np.array_equal(kept, w):
+            break
+        w[:] = kept
         solver.set_weights(w)
+        converged = False
     return converged
 
 
@@ -1016,9 +1024,11 @@ def _group_chi2(groups: list[np.ndarray], solver: H2OSolver, chunk: int, sign: f
         if large:
             out[large] = _left_out_chi2(H, r, J, var, [members[i] for i in large], sign)
         small = [i for i, m in enumerate(members) if len(m) <= LEFT_OUT_FROM]
-        if small and _selected_pays(solver, H, len(np.unique(np.concatenate(
+        if small and _selected_pays(solver, len(np.unique(np.concatenate(
                 [members[i] for i in small])))):
             out[small] = _selected_chi2(r, J, var, [members[i] for i in small], H, sign)
+            if np.all(np.isnan(out[small])):
+                _Unaffordable.mark(solver)
     rest = np.flatnonzero(np.isnan(out))
     if len(rest):
         out[rest] = _columns_chi2(r, J, var, [members[i] for i in rest], H, chunk, sign)
@@ -1092,19 +1102,11 @@ def _columns_chi2(r: Array, J: Array, var: np.ndarray, members: list[np.ndarray]
     return out
 
 
-def _selected_pays(solver: H2OSolver, H: sp.csc_matrix, edges: int) -> bool:
-    """Whether scoring ``edges`` edges from the selected inverse of the solver's ``H``
-    (its upper triangle) is cheaper than from their columns of ``H⁻¹``
-    (:data:`SELECTED_FROM`) and affordable (:data:`~h2o_slam.core.selinv.MAX_WORK`,
-    measured once per solver and graph size from the factor of ``H``: weights change its
-    pattern little)."""
-    if edges < SELECTED_FROM:
-        return False
-    key = (id(solver), solver.num_nodes, solver.num_edges)
-    local = _SelectedCost._local
-    if getattr(local, "key", None) != key:
-        local.key, local.work = key, factor_cost(H)[0]
-    return bool(local.work <= MAX_WORK)
+def _selected_pays(solver: H2OSolver, edges: int) -> bool:
+    """Whether scoring ``edges`` edges from the selected inverse of the solver's ``H`` is
+    cheaper than from their columns of ``H⁻¹`` (:data:`SELECTED_FROM`) and not known to be
+    unaffordable (:class:`_Unaffordable`)."""
+    return edges >= SELECTED_FROM and not _Unaffordable.holds(solver)
 
 
 #: Fewest edges for which :func:`_group_chi2` scores from the selected inverse: about where
@@ -1113,11 +1115,25 @@ def _selected_pays(solver: H2OSolver, H: sp.csc_matrix, edges: int) -> bool:
 SELECTED_FROM = 16
 
 
-class _SelectedCost:
-    """The last solver's selected-inverse work (:func:`~h2o_slam.core.selinv.factor_cost`),
-    per thread."""
+class _Unaffordable:
+    """The last solver (per thread) whose selected inverse was beyond
+    :data:`~h2o_slam.core.selinv.MAX_WORK` or did not factor, by its size: weights change
+    its pattern little, so its closures are scored from columns of ``H⁻¹`` without a
+    factorization to learn it again."""
 
     _local = threading.local()
+
+    @classmethod
+    def _key(cls, solver: H2OSolver) -> tuple[int, int, int]:
+        return id(solver), solver.num_nodes, solver.num_edges
+
+    @classmethod
+    def holds(cls, solver: H2OSolver) -> bool:
+        return getattr(cls._local, "key", None) == cls._key(solver)
+
+    @classmethod
+    def mark(cls, solver: H2OSolver) -> None:
+        cls._local.key = cls._key(solver)
 
 
 def _selected(H: sp.csc_matrix, var: np.ndarray, members: list[np.ndarray]
@@ -1240,21 +1256,33 @@ def _batch_chi2(r: Array, J: Array, var: np.ndarray, groups: list[np.ndarray],
     return out
 
 
-#: Side of the joint covariances from which :func:`_quadratic_forms` tries Cholesky first.
-CHOLESKY_FROM = 64
+#: Side of the joint covariances from which :func:`_quadratic_forms` tries Cholesky first:
+#: every side (the pseudo-inverse's eigendecomposition costs ten times as much, at 6 × 6
+#: as at 984 × 984).
+CHOLESKY_FROM = 1
+
+#: Side up to which a stack of joint covariances is solved at once (beyond it one by one,
+#: by triangular solves).
+BATCHED_UP_TO = 64
 
 
 def _quadratic_forms(S: Array, r: Array) -> Array:
     """``rᵀ S⁺ r`` for each of the stacked symmetric positive semi-definite ``S``.
 
     The pseudo-inverse because ``I − JΣJᵀ`` of an edge the map cannot do without is
-    singular; a large ``S`` (a place of many closures) by Cholesky where it factors, since
-    the pseudo-inverse's eigendecomposition costs ten times as much (smallGrid3D's place of
-    164 closures, 984 × 984: half of a robust solve's time). Where Cholesky succeeds the
-    matrix is numerically positive definite and the two agree.
+    singular; by Cholesky where ``S`` factors, since the pseudo-inverse's eigendecomposition
+    costs ten times as much (smallGrid3D's place of 164 closures, 984 × 984: half of a
+    robust solve's time; a 1,000-pose grid's 433 closures, 6 × 6 each: 20 ms). Where
+    Cholesky succeeds the matrix is numerically positive definite and the two agree.
     """
     if S.shape[-1] < CHOLESKY_FROM:
         return np.einsum("ei,eij,ej->e", r, np.linalg.pinv(S, hermitian=True), r)
+    if S.shape[-1] <= BATCHED_UP_TO:
+        try:
+            y = np.linalg.solve(np.linalg.cholesky(S), r[..., None])[..., 0]
+            return np.einsum("ei,ei->e", y, y)
+        except np.linalg.LinAlgError:  # one of them singular: each alone
+            pass
     from scipy.linalg import solve_triangular  # on use: see chdtri
 
     out = np.empty(len(S))

@@ -25,7 +25,6 @@ unknowns whose entries the caller will read, and adds them to the pattern (as ze
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,10 +67,11 @@ class SelectedInverse:
 
 
 def selected_inverse(upper: sp.csc_matrix, pairs: np.ndarray,
-                     max_work: float = MAX_WORK) -> SelectedInverse | None:
+                     max_work: float | None = None) -> SelectedInverse | None:
     """The selected inverse of the symmetric positive definite matrix whose upper triangle
     is ``upper`` (CSC, sorted), on the factor's pattern widened by the unknown ``pairs``
-    (``k × 2``): ``None`` when it would take more than ``max_work`` multiply-adds, no
+    (``k × 2``): ``None`` when it would take more than ``max_work`` multiply-adds
+    (:data:`MAX_WORK` by default), no
     factorization is available (CHOLMOD is not installed), or the matrix does not factor.
     """
     widened = with_entries(upper, pairs)
@@ -79,7 +79,7 @@ def selected_inverse(upper: sp.csc_matrix, pairs: np.ndarray,
     if factor is None:
         return None
     perm, indptr, indices, lower, d = factor
-    if _work(indptr, indices) > max_work:
+    if _work(indptr, indices) > (MAX_WORK if max_work is None else max_work):
         return None
     values = np.zeros_like(lower)
     diagonal = np.zeros(len(d))
@@ -88,17 +88,6 @@ def selected_inverse(upper: sp.csc_matrix, pairs: np.ndarray,
     iperm = np.empty_like(perm)
     iperm[perm] = np.arange(len(perm))
     return SelectedInverse(iperm, indptr, indices, values, diagonal)
-
-
-def factor_cost(upper: sp.csc_matrix) -> tuple[float, int]:
-    """``(work, entries)`` of the matrix with upper triangle ``upper``: the multiply-adds of
-    its selected inverse (``inf`` where it has none: no CHOLMOD, or no factor) and the
-    entries of its factor ``L``, which one column's triangular solve passes over."""
-    factor = cholesky_factor(upper)
-    if factor is None:
-        return math.inf, 0
-    _, indptr, indices, _, _ = factor
-    return float(_work(indptr, indices)), len(indices)
 
 
 @kernel
