@@ -1164,7 +1164,7 @@ def _selected(H: sp.csc_matrix, var: np.ndarray, members: list[np.ndarray]
 def _node_pairs(nodes: np.ndarray, members: list[np.ndarray]) -> np.ndarray:
     """Every pair of free end ``nodes`` (``e × 2``, -1: held) of each group's edges, each
     node with itself too (a block of ``H`` may hold stored zeros that the factor leaves
-    out): ``k × 2``, repeats included. Groups of one size at a time."""
+    out): ``k × 2``, each pair once. Groups of one size at a time."""
     sizes = np.array([len(m) for m in members])
     out = [np.zeros((0, 2), dtype=np.int64)]
     for size in np.unique(sizes):
@@ -1173,7 +1173,11 @@ def _node_pairs(nodes: np.ndarray, members: list[np.ndarray]) -> np.ndarray:
         i, j = np.triu_indices(2 * size)
         pairs = np.stack([ends[:, i], ends[:, j]], axis=-1).reshape(-1, 2)
         out.append(pairs[np.all(pairs >= 0, axis=1)])
-    return np.unique(np.concatenate(out), axis=0)
+    pairs = np.concatenate(out)
+    # Unique as one integer key each (np.unique by rows sorts records: ten times slower).
+    span = int(pairs.max(initial=0)) + 1
+    key = np.unique(pairs[:, 0] * span + pairs[:, 1])
+    return np.stack([key // span, key % span], axis=1)
 
 
 def _selected_chi2(r: Array, J: Array, var: np.ndarray, members: list[np.ndarray],

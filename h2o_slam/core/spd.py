@@ -296,8 +296,11 @@ def cholesky_factor(upper: sp.csc_matrix
     cholmod.solve(F, d_inv, sys=6)  # ones for an LLᵀ factor
     simplicial = not np.all(np.asarray(d_inv) == 1.0)
     L = cholmod.getfactor(F)  # F is spent: cvxopt converts it in place
-    indptr, indices, values = (np.array(m).ravel() for m in L.CCS)
+    # Through the buffer protocol: np.array() of a cvxopt matrix converts element by
+    # element (0.12 s of a 2,200-pose sphere's 3 million entries).
+    indptr, indices, values = (np.asarray(memoryview(m)).ravel() for m in L.CCS)
     indptr, indices = indptr.astype(np.int64), indices.astype(np.int64)
+    values = values.astype(float)  # a copy: scaled below
     first = values[indptr[:-1]]  # the diagonal: D (LDLᵀ, packed), or L_jj (LLᵀ)
     if simplicial:
         d = first.copy()
