@@ -28,6 +28,12 @@ solved by least squares once more from a start that does not depend on the path 
 decisions took (LAGO of the kept edges on planar graphs, the chordal initialization in
 3-D), and that answer is kept where its χ² is lower (:func:`_restarted_if_lower`).
 
+The scores these moves weigh (each closure's deletion χ², a place's joint one, the
+innovation of a closure that is out) read blocks of the map's covariance ``H⁻¹`` at the
+closures' ends: from the selected inverse (:mod:`h2o_slam.core.selinv`) when many are
+scored, from columns of ``H⁻¹`` when a few are, and by one solve with the group left out
+for a place of many closures (:func:`_group_chi2`).
+
 The weights end binary; :func:`edge_states` names them for reports and diagnostics
 (:class:`EdgeState`). Weights live in the solver's edge table
 (:meth:`~h2o_slam.core.solver.H2OSolver.set_weights`), so every solver path (exact, the

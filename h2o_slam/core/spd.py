@@ -299,14 +299,14 @@ def cholesky_factor(upper: sp.csc_matrix
     # Through the buffer protocol: np.array() of a cvxopt matrix converts element by
     # element (0.12 s of a 2,200-pose sphere's 3 million entries).
     indptr, indices, values = (np.asarray(memoryview(m)).ravel() for m in L.CCS)
-    indptr, indices = indptr.astype(np.int64), indices.astype(np.int64)
-    values = values.astype(float)  # a copy: scaled below
+    indptr, indices = indptr.astype(np.int64, copy=False), indices.astype(np.int64, copy=False)
+    values = np.array(values, dtype=float)  # cvxopt's own buffer: scaled below, so a copy
     first = values[indptr[:-1]]  # the diagonal: D (LDLᵀ, packed), or L_jj (LLᵀ)
     if simplicial:
         d = first.copy()
     else:
         d = first ** 2
-        values = values / np.repeat(first, np.diff(indptr))
+        values /= np.repeat(first, np.diff(indptr))
     if not np.all(d > 0.0):  # an LDLᵀ factor of an indefinite matrix: no Cholesky factor
         return None
     values[indptr[:-1]] = 1.0
