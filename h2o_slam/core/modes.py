@@ -31,9 +31,8 @@ from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, chi2, edge_chi2
 from h2o_slam.core.online import OnlineConfig, OnlineH2O
 from h2o_slam.core.robust import (
     RobustConfig,
-    chordal_restart,
     converge_robust,
-    lago_restart,
+    global_restart,
     lowest_cost,
     odometry_edges,
 )
@@ -281,8 +280,7 @@ def _solve_robust(graph: PoseGraph, iterations: int, config: SolverConfig | None
                   robust: RobustConfig) -> SolveResult:
     trusted = odometry_edges(graph.kind, graph.a, graph.b)
     solver, start = build_solver(graph, config, init, regularizer=False, trusted=trusted)
-    restart = lago_restart(graph) if graph.planar else (
-        None if has_global(graph) else chordal_restart(graph))
+    restart = global_restart(graph)
     outcome = converge_robust(solver, iterations, trusted, robust, restart=restart)
     return _exact_result(solver, start, outcome.history, outcome.converged, init)
 

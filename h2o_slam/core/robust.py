@@ -26,7 +26,7 @@ whatever the TLS cost says (Neira & Tardós's joint compatibility test,
 false closures for less than the cost of leaving them out. The final decisions are then
 solved by least squares once more from a start that does not depend on the path the
 decisions took (LAGO of the kept edges on planar graphs, the chordal initialization in
-3-D), and that answer is kept where its χ² is lower (:func:`_restarted_if_lower`).
+3-D), and that answer is kept where its χ² is lower (:func:`restarted_if_lower`).
 
 The scores these moves weigh (each closure's deletion χ², a place's joint one, the
 innovation of a closure that is out) read blocks of the map's covariance ``H⁻¹`` at the
@@ -181,6 +181,17 @@ def chordal_restart(graph: PoseGraph) -> Restart:
         return chordal(graph, weights)
 
     return start
+
+
+def global_restart(graph: PoseGraph) -> Restart | None:
+    """The start that needs no guess for ``graph``'s kind: LAGO of a planar graph, the
+    chordal initialization of a 3-D one; none for a 3-D graph with GPS or compass edges
+    (the chordal relaxation leaves them out, and the map they anchor with them)."""
+    if graph.planar:
+        return lago_restart(graph)
+    if np.any(graph.kind != EdgeKind.RELATIVE):
+        return None
+    return chordal_restart(graph)
 
 
 def odometry_edges(kind: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -367,7 +378,7 @@ def converge_robust(
     # solve already starts from LAGO (planar) or chordal (3-D, its default start); a
     # restart there would only repeat it.
     if restart is not None and np.any(outcome.weights < 1.0):
-        _restarted_if_lower(solver, outcome, restart, iterations)
+        restarted_if_lower(solver, outcome, restart, iterations)
     return outcome
 
 
@@ -442,8 +453,8 @@ def _polish(solver: H2OSolver, outcome: RobustOutcome, start: tuple[Array, Array
         solver.tree.R[:], solver.tree.t[:] = bent
 
 
-def _restarted_if_lower(solver: H2OSolver, outcome: RobustOutcome, restart: Restart,
-                        iterations: int) -> None:
+def restarted_if_lower(solver: H2OSolver, outcome: RobustOutcome, restart: Restart,
+                       iterations: int) -> None:
     """The final decisions solved again from the restart of these decisions (LAGO of the
     kept edges, planar; chordal, 3-D), kept if χ² ends lower. Decisions made along a
     graduation can leave least squares converged in a basin of their own that the same

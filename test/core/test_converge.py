@@ -21,7 +21,7 @@ from h2o_slam.core.converge import (
     StagedMerge,
 )
 from h2o_slam.core.exact import converge_exact
-from h2o_slam.core.graph import chi2
+from h2o_slam.core.graph import EdgeKind, chi2
 from h2o_slam.core.modes import (
     add_arrival,
     arrivals,
@@ -628,3 +628,73 @@ def test_a_solution_older_than_the_hold_waits_for_a_later_call(city):
                                                                before)
     finally:
         h2o.close()
+
+
+def _stuck_snapshot(graph, seed: int):
+    """A tree snapshot of ``graph`` after Gauss–Newton from rotations drawn at random (a
+    local minimum, or a crawl, far above the optimum) and its χ²."""
+    solver, _ = build_solver(graph, init="tree", regularizer=False)
+    R, t = solver.world_poses()
+    rng = np.random.default_rng(seed)
+    if graph.planar:
+        turn = geo.yaw_to_matrix(rng.uniform(-np.pi, np.pi, len(R)))
+    else:
+        turn = geo.so3_exp(rng.normal(0.0, 2.0, (len(R), 3)))
+    solver.tree.set_world_poses(turn @ R, t + rng.normal(0.0, 3.0, t.shape))
+    history, _ = converge_exact(solver, 300)
+    n = solver.num_nodes
+    tree = solver.tree
+    return (tree.parent[:n].copy(), tree.R[:n].copy(), tree.t[:n].copy()), history[-1]
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_a_solve_from_the_global_start_leaves_the_live_maps_basin(planar):
+    """A snapshot in a local minimum stays there solved from itself; solved again from the
+    start that needs no guess (LAGO, chordal in 3-D) it reaches the batch optimum, and the
+    lower answer is the one returned."""
+    from h2o_slam.core.converge import EdgeRows
+
+    graph = manhattan(150, seed=1).graph if planar else grid3d(60, seed=5).graph
+    best = solve_exact(graph, init="lago" if planar else "chordal").chi2_per_pass[-1]
+    snapshot, stuck = _stuck_snapshot(graph, seed=1)
+    assert stuck > 100.0 * best
+    solver, _ = build_solver(graph, init="tree", regularizer=False)
+    answers = []
+    for from_global in (False, True):
+        problem = ExactProblem(planar)
+        problem.add_edges(EdgeRows.of(solver, 0))
+        sol = problem.solve(*(a.copy() for a in snapshot), graph.num_edges, 0, 50,
+                            from_global=from_global)
+        assert not sol.error
+        answers.append(chi2(graph, sol.R, sol.t))
+    assert answers[0] > 100.0 * best
+    assert answers[1] == pytest.approx(best, rel=1e-6)
+
+
+def test_the_global_start_is_tried_once_per_edge_count_when_converged_and_idle():
+    """Due only beside a free worker, with the map converged at every edge and not yet
+    solved from the global start at this many."""
+    h2o = OnlineH2O(planar=True, online=OnlineConfig(background="inline"))
+    for node in range(3):
+        h2o.add_pose(np.eye(3), np.array([float(node), 0.0, 0.0]))
+    for node in range(2):
+        h2o.add_edge(EdgeKind.RELATIVE, node, node + 1, np.eye(3), np.array([1.0, 0.0, 0.0]),
+                     np.eye(6))
+    converger = h2o.converger
+    assert not converger._global_due()  # no worker
+
+    class Free:
+        busy = False
+
+    converger._worker = Free()
+    m = h2o.solver.num_edges
+    converger.state.converged_edges = m - 1
+    assert not converger._global_due()  # not converged at every edge
+    converger.state.converged_edges = m
+    assert converger._global_due()
+    converger._global_at = m
+    assert not converger._global_due()  # done at this many
+    Free.busy = True
+    converger._global_at = -1
+    assert not converger._global_due()
+    converger._worker = None

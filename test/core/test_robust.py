@@ -22,7 +22,6 @@ from h2o_slam.core.robust import (
     RobustConfig,
     RobustOutcome,
     _polish,
-    _restarted_if_lower,
     closure_noise_scale,
     converge_robust,
     deletion_chi2,
@@ -33,6 +32,7 @@ from h2o_slam.core.robust import (
     innovation_chi2,
     lago_restart,
     odometry_edges,
+    restarted_if_lower,
     solver_residuals,
     tail_thresholds,
     thresholds,
@@ -609,7 +609,7 @@ def test_a_converged_answer_in_a_worse_basin_is_solved_again_from_lago():
     solver, stuck = _local_minimum(graph)
     assert stuck > 100 * best
     outcome = RobustOutcome(np.ones(graph.num_edges), [stuck], 0, True)
-    _restarted_if_lower(solver, outcome, lago_restart(graph), 100)
+    restarted_if_lower(solver, outcome, lago_restart(graph), 100)
     assert outcome.converged and outcome.history[-1] <= best * (1 + 1e-9)
     np.testing.assert_allclose(solver.world_poses()[1], optimum.t, atol=1e-6)
 
@@ -626,7 +626,7 @@ def test_a_restart_that_ends_higher_leaves_the_map_as_it_was():
         return far
 
     outcome = RobustOutcome(np.ones(graph.num_edges), history[-1:], 0, True)
-    _restarted_if_lower(solver, outcome, restart, 100)
+    restarted_if_lower(solver, outcome, restart, 100)
     assert outcome.history == history[-1:]
     np.testing.assert_array_equal(solver.world_poses()[1], there)
 
