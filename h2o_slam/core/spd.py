@@ -179,13 +179,7 @@ class _Cholmod:
         from cvxopt import cholmod
 
         self._cvxopt, self._cholmod = cvxopt, cholmod
-        n = len(indptr) - 1
-        cols = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr))
-        # Ones, not the values: a stored zero would be dropped from the pattern.
-        self._A = cvxopt.spmatrix(
-            1.0, cvxopt.matrix(np.asarray(indices, dtype=np.int64)), cvxopt.matrix(cols), (n, n))
-        if self._A.V.size[0] != len(indices):
-            raise ValueError("the pattern has duplicate entries")
+        self._A = _cvxopt_pattern(indptr, indices)
         self._F: Any = None
 
     def solve(self, data: Array, rhs: Array) -> Array:
@@ -220,6 +214,24 @@ class _Cholmod:
             if self._F is None:
                 self._F = cholmod.symbolic(self._A, uplo="U")
             cholmod.numeric(self._A, self._F)  # ArithmeticError: not positive definite
+
+
+def _cvxopt_pattern(indptr: np.ndarray, indices: np.ndarray) -> Any:
+    """A cvxopt sparse matrix with the CSC pattern ``(indptr, indices)``, ones as values
+    (a stored zero would be dropped from the pattern; the values are set after).
+
+    Raises:
+        ValueError: the pattern has duplicate entries.
+    """
+    import cvxopt
+
+    n = len(indptr) - 1
+    cols = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr))
+    A = cvxopt.spmatrix(1.0, cvxopt.matrix(np.asarray(indices, dtype=np.int64)),
+                        cvxopt.matrix(cols), (n, n))
+    if A.V.size[0] != len(indices):
+        raise ValueError("the pattern has duplicate entries")
+    return A
 
 
 @contextmanager
@@ -280,11 +292,9 @@ def cholesky_factor(upper: sp.csc_matrix
     from cvxopt import cholmod
 
     n = upper.shape[0]
-    cols = np.repeat(np.arange(n, dtype=np.int64), np.diff(upper.indptr))
-    A = cvxopt.spmatrix(1.0, cvxopt.matrix(upper.indices.astype(np.int64)),
-                        cvxopt.matrix(cols), (n, n))
-    A.V = cvxopt.matrix(np.asarray(upper.data, dtype=float))
     try:
+        A = _cvxopt_pattern(upper.indptr, upper.indices)
+        A.V = cvxopt.matrix(np.asarray(upper.data, dtype=float))
         with _chosen_by_fill(cholmod):
             F = cholmod.symbolic(A, uplo="U")
             cholmod.numeric(A, F)
