@@ -223,6 +223,11 @@ def condition_information(
     return out, clamped_idx
 
 
+def has_global(graph: PoseGraph) -> bool:
+    """The graph has GPS or compass edges (ones to the earth frame)."""
+    return bool(np.any(graph.kind != EdgeKind.RELATIVE))
+
+
 def edge_errors(graph: PoseGraph, R: Array | None = None, t: Array | None = None) -> Array:
     """Error vector of every edge at the estimate ``(R, t)`` (default: the graph's own).
 

@@ -27,7 +27,7 @@ from h2o_slam.core.converge import ConvergeState
 from h2o_slam.core.errors import InputError
 from h2o_slam.core.exact import converge_exact
 from h2o_slam.core.geometry import Array
-from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, chi2, edge_chi2
+from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, chi2, edge_chi2, has_global
 from h2o_slam.core.online import OnlineConfig, OnlineH2O
 from h2o_slam.core.robust import (
     RobustConfig,
@@ -295,11 +295,6 @@ def _exact_result(solver: H2OSolver, start: PoseGraph, history: list[float], con
         result.init = robust_init
     result.R, result.t = solver.world_poses()
     return result
-
-
-def has_global(graph: PoseGraph) -> bool:
-    """The graph has GPS or compass edges (ones to the earth frame)."""
-    return bool(np.any(graph.kind != EdgeKind.RELATIVE))
 
 
 def solve_lago(graph: PoseGraph) -> SolveResult:

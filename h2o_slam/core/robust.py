@@ -55,7 +55,14 @@ import scipy.sparse as sp
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.exact import ExactSystem, converge_exact, settled
 from h2o_slam.core.geometry import Array
-from h2o_slam.core.graph import EARTH, EdgeKind, PoseGraph, edge_chi2, odometry_chain
+from h2o_slam.core.graph import (
+    EARTH,
+    EdgeKind,
+    PoseGraph,
+    edge_chi2,
+    has_global,
+    odometry_chain,
+)
 from h2o_slam.core.jacobians import endpoint_jacobians
 from h2o_slam.core.selinv import SelectedInverse, selected_inverse
 from h2o_slam.core.solver import H2OSolver
@@ -189,9 +196,7 @@ def global_restart(graph: PoseGraph) -> Restart | None:
     (the chordal relaxation leaves them out, and the map they anchor with them)."""
     if graph.planar:
         return lago_restart(graph)
-    if np.any(graph.kind != EdgeKind.RELATIVE):
-        return None
-    return chordal_restart(graph)
+    return None if has_global(graph) else chordal_restart(graph)
 
 
 def odometry_edges(kind: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -36,13 +36,19 @@ from h2o_slam.app.cli.common import (
 )
 from h2o_slam.baselines.chi2_metrics import METRICS, all_chi2
 from h2o_slam.core.errors import H2OError, InputError
-from h2o_slam.core.graph import INFO_EIG_FLOOR, PoseGraph, chi2, chi2_as_written, edge_chi2
+from h2o_slam.core.graph import (
+    INFO_EIG_FLOOR,
+    PoseGraph,
+    chi2,
+    chi2_as_written,
+    edge_chi2,
+    has_global,
+)
 from h2o_slam.core.modes import (
     EXACT_ITERATIONS,
     INITS,
     Progress,
     SolveResult,
-    has_global,
     sample_points,
     solve_exact,
     solve_lago,
