@@ -774,9 +774,7 @@ def _drop_strained(solver: H2OSolver, w: Array, free: np.ndarray, c2: Array, ite
         strained &= deletion > SIGNIFICANT
         order = [i for i in np.argsort(-deletion)[:MAX_TRIES] if deletion[i] > SIGNIFICANT]
         order += [i for i in np.argsort(-ratio)[:MAX_TRIES] if strained[i]]
-        places = _held_places(inside, c2, shared, joint[len(inside):],
-                              _compatible_up_to(solver.p, c2, [inside[g] for g in shared],
-                                                probability) if shared else np.zeros(0))
+        places = _held_places(solver.p, inside, c2, shared, joint[len(inside):], probability)
     # Single closures first (a false closure among true ones of the same revisit shares
     # their place, so its cluster would take them out with it), then whole places.
     singles = [np.array([i]) for i in dict.fromkeys(order)]
@@ -824,11 +822,11 @@ def _places(solver: H2OSolver, inside: np.ndarray) -> list[np.ndarray]:
                                            np.zeros(len(closures))) if len(g) > 1]
 
 
-def _held_places(inside: np.ndarray, c2: Array, places: list[np.ndarray], joint: Array,
-                 bars: Array) -> list[np.ndarray]:
+def _held_places(p: int, inside: np.ndarray, c2: Array, places: list[np.ndarray],
+                 joint: Array, probability: float) -> list[np.ndarray]:
     """The ``places`` (positions in ``inside``) whose joint deletion χ² ``joint``
-    (:func:`group_chi2`) fails the joint compatibility test (above ``bars``,
-    :func:`_compatible_up_to`), largest share of their summed ``c̄²`` first: a group of
+    (:func:`group_chi2`) fails the joint compatibility test (:func:`_compatible_up_to`
+    at the inlier ``probability``), largest share of their summed ``c̄²`` first: a group of
     consistent false closures holds a bent stretch together, each one's own deletion χ²
     small because the others hold it (measured on intel with a group of 10: two accepted,
     deletion χ² 0.93 and 0.34 ``c̄²`` each, 4.6 times the pair's summed ``c̄²`` together,
@@ -839,6 +837,7 @@ def _held_places(inside: np.ndarray, c2: Array, places: list[np.ndarray], joint:
     if not places:
         return []
     ratio = joint / np.array([c2[inside[g]].sum() for g in places])
+    bars = _compatible_up_to(p, c2, [inside[g] for g in places], probability)
     return [places[i] for i in np.argsort(-ratio)[:MAX_TRIES] if joint[i] > bars[i]]
 
 
@@ -1295,11 +1294,6 @@ def _batch_chi2(r: Array, J: Array, var: np.ndarray, groups: list[np.ndarray],
     return out
 
 
-#: Side of the joint covariances from which :func:`_quadratic_forms` tries Cholesky first:
-#: every side (the pseudo-inverse's eigendecomposition costs ten times as much, at 6 × 6
-#: as at 984 × 984).
-CHOLESKY_FROM = 1
-
 #: Side up to which a stack of joint covariances is solved at once (beyond it one by one,
 #: by triangular solves).
 BATCHED_UP_TO = 64
@@ -1314,8 +1308,6 @@ def _quadratic_forms(S: Array, r: Array) -> Array:
     robust solve's time; a 1,000-pose grid's 433 closures, 6 × 6 each: 20 ms). Where
     Cholesky succeeds the matrix is numerically positive definite and the two agree.
     """
-    if S.shape[-1] < CHOLESKY_FROM:
-        return np.einsum("ei,eij,ej->e", r, np.linalg.pinv(S, hermitian=True), r)
     if S.shape[-1] <= BATCHED_UP_TO:
         try:
             y = np.linalg.solve(np.linalg.cholesky(S), r[..., None])[..., 0]
