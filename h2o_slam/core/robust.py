@@ -32,7 +32,9 @@ The scores these moves weigh (each closure's deletion χ², a place's joint one,
 innovation of a closure that is out) read blocks of the map's covariance ``H⁻¹`` at the
 closures' ends: from the selected inverse (:mod:`h2o_slam.core.selinv`) when many are
 scored, from columns of ``H⁻¹`` when a few are, and by one solve with the group left out
-for a place of many closures (:func:`_group_chi2`).
+for a place of many closures (:func:`_group_chi2`). Where only a few drop candidates are
+weighed, the edges around each bound its deletion χ² first
+(:mod:`h2o_slam.core.neighbourhood`), and only those the bound does not clear are scored.
 
 The weights end binary; :func:`edge_states` names them for reports and diagnostics
 (:class:`EdgeState`). Weights live in the solver's edge table
@@ -56,14 +58,13 @@ from h2o_slam.core import geometry as geo
 from h2o_slam.core.exact import ExactSystem, converge_exact, settled
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import (
-    EARTH,
     EdgeKind,
     PoseGraph,
     edge_chi2,
     has_global,
     odometry_chain,
 )
-from h2o_slam.core.jacobians import endpoint_jacobians
+from h2o_slam.core.neighbourhood import deletion_bounds, whitened_terms
 from h2o_slam.core.selinv import SelectedInverse, selected_inverse
 from h2o_slam.core.solver import H2OSolver
 from h2o_slam.core.spd import SPDFactor, positions, upper, with_entries
@@ -807,9 +808,23 @@ def _significant_drops(solver: H2OSolver, inside: np.ndarray, c2: Array,
     by strain alone were tried, none kept, 45 of the robust solve's 48 s."""
     if not candidates:
         return []
-    joint = group_chi2(solver, [inside[g] for g in candidates], sign=-1.0)
-    scale = np.array([c2[inside[g]].sum() for g in candidates])
-    return [g for g, ratio in zip(candidates, joint / scale, strict=True) if ratio > SIGNIFICANT]
+    groups = [inside[g] for g in candidates]
+    bar = SIGNIFICANT * np.array([c2[g].sum() for g in groups])
+    # The map's covariance at a few closures costs a factorization and a selected inverse
+    # of the whole graph (0.35 s on a 2,200-pose sphere), the edges around each bound it
+    # (a millisecond): only the candidates no neighbourhood clears are scored.
+    doubt = np.arange(len(groups))
+    for hops in BOUND_HOPS:
+        doubt = doubt[deletion_bounds(solver, [groups[i] for i in doubt], hops) > bar[doubt]]
+    joint = group_chi2(solver, [groups[i] for i in doubt], sign=-1.0)
+    return [candidates[i] for i, chi2 in zip(doubt, joint, strict=True) if chi2 > bar[i]]
+
+
+#: Neighbourhoods (edges from a candidate's ends) whose bound on its deletion χ² clears
+#: it (:func:`~h2o_slam.core.neighbourhood.deletion_bounds`), the smaller first: one edge
+#: clears every strained closure of the 2,200-pose spheres, two every closure of
+#: city10000 (one 86 %).
+BOUND_HOPS = (1, 2)
 
 
 def _places(solver: H2OSolver, inside: np.ndarray) -> list[np.ndarray]:
@@ -1332,19 +1347,9 @@ def _whitened(solver: H2OSolver, edges: np.ndarray
     unknown of each Jacobian column (-1 where the system holds the end), and the upper
     triangle of the weighted Gauss–Newton matrix ``H`` (``None`` without unknowns)."""
     H, _, free_nodes = ExactSystem(solver).normal_equations()
-    p, dof = solver.p, solver.dof
-    R, x = solver.world_poses()
+    p = solver.p
     a, b = solver.a[edges], solver.b[edges]
-    glob = a == EARTH
-    ia = np.where(glob, 0, a)
-    err, Ja, Jb = endpoint_jacobians(
-        solver.kind[edges], np.where(glob[:, None, None], np.eye(3), R[ia]),
-        np.where(glob[:, None], 0.0, x[ia]), R[b], x[b], solver.meas_R[edges],
-        solver.meas_t[edges])
-    W = solver._edges.W_unit[edges]
-    r = np.einsum("eij,ej->ei", W, err[:, dof])
-    J = np.concatenate([Ja[:, dof][:, :, dof], Jb[:, dof][:, :, dof]], axis=2)
-    J = np.einsum("eij,ejk->eik", W, J)  # whitened (p × 2p)
+    r, J = whitened_terms(solver, edges)
     block = np.full(solver.num_nodes + 1, -1, dtype=np.int64)  # [-1]: the earth, held
     block[free_nodes] = np.arange(len(free_nodes))
     ends = np.stack([block[a], block[b]], axis=1)

@@ -718,3 +718,34 @@ def test_a_large_place_is_scored_as_the_pseudo_inverse_scores_it(solved_world, m
     monkeypatch.setattr(np.linalg, "cholesky", no_factor)
     slow = robust._group_chi2([place], solver, 128, -1.0)
     np.testing.assert_allclose(fast, slow, rtol=1e-8)
+
+
+@pytest.mark.parametrize("false_closures", [0, 1])
+def test_drop_candidates_their_neighbourhood_clears_are_not_scored(world, monkeypatch,
+                                                                   false_closures):
+    """Of the drop candidates, those whose neighbourhood bounds their deletion χ² below the
+    bar are not scored on the whole graph, and the candidates kept are those scoring every
+    one keeps: none without outliers, the false closure among them with one."""
+    from h2o_slam.core import robust
+
+    graph, _ = world
+    planted = plant_outliers(graph, "random", false_closures, seed=2)
+    trusted = odometry_edges(planted.graph.kind, planted.graph.a, planted.graph.b)
+    solver, _ = build_solver(planted.graph, init="tree", regularizer=False, trusted=trusted)
+    converge_exact(solver, 100)  # least squares: a false closure is in, bending the map
+    inside = np.flatnonzero(~trusted)
+    c2 = edge_thresholds(planted.graph, trusted, RobustConfig())
+    order = np.argsort(-solver_residuals(solver)[inside] / c2[inside])
+    candidates = [order[[i]] for i in range(12)] + [order[[3, 7]]]
+    scored = []
+    real = robust.group_chi2
+    monkeypatch.setattr(robust, "group_chi2", lambda s, groups, **kw: scored.extend(
+        groups) or real(s, groups, **kw))
+    kept = [g.tolist() for g in robust._significant_drops(solver, inside, c2, candidates)]
+    bar = robust.SIGNIFICANT * np.array([c2[inside[g]].sum() for g in candidates])
+    every = real(solver, [inside[g] for g in candidates], sign=-1.0) > bar
+    assert kept == [g.tolist() for g, k in zip(candidates, every, strict=True) if k]
+    if false_closures:
+        assert [int(np.flatnonzero(inside == np.flatnonzero(planted.outlier)[0])[0])] in kept
+    else:
+        assert not kept and len(scored) < len(candidates)
