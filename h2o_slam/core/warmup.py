@@ -142,15 +142,17 @@ def _robust_solve() -> None:
     connected_components(np.eye(2), directed=False)
     graph = false_ring(True)
     lago_restart(graph)(np.ones(graph.num_edges))
-    load_selected_inverse()
+    load_closure_scoring()
 
 
-def load_selected_inverse() -> None:
-    """The selected inverse's kernels: a robust solve scores closures with it on graphs of
-    about a thousand poses and more (a small graph's solve, as on :func:`false_ring`, never
-    takes that path)."""
+def load_closure_scoring() -> None:
+    """The kernels that weigh a robust solve's loop closures on graphs of about a thousand
+    poses and more (a small graph's solve, as on :func:`false_ring`, takes neither path):
+    the selected inverse's, and the neighbourhood bounds on drop candidates."""
     import scipy.sparse as sp
 
+    from h2o_slam.core.modes import build_solver
+    from h2o_slam.core.neighbourhood import deletion_bounds
     from h2o_slam.core.selinv import selected_inverse
     from h2o_slam.core.spd import upper
 
@@ -158,6 +160,9 @@ def load_selected_inverse() -> None:
     selected = selected_inverse(upper(A), np.array([[0, 2]]))
     if selected is not None:  # without CHOLMOD no robust solve has one either
         selected.blocks(np.array([[0, 2, -1]]))
+    for planar in (True, False):
+        solver, _ = build_solver(false_ring(planar), init="tree", regularizer=False)
+        deletion_bounds(solver, [np.array([0])], 1)
 
 
 def false_ring(planar: bool, n: int = 12) -> PoseGraph:

@@ -237,9 +237,12 @@ from h2o_slam.io.synthetic import grid3d, manhattan
 planar, init = sys.argv[1] == "planar", sys.argv[2]
 graph = (manhattan if planar else grid3d)(60, seed=3).graph
 _load(graph, SolveOptions(init=init))
-# A graph this small scores closures from columns of H⁻¹; the selected inverse that larger
-# ones use is taken here for any number of closures, so that its kernels count too.
+# A graph this small scores every closure from columns of H⁻¹; the selected inverse, and
+# the neighbourhood bounds on drop candidates where only those are scored, that larger
+# ones use are taken here for any number of closures, so that their kernels count too.
 robust.SELECTED_FROM = 1
+robust.DELETION_WORK = 0  # only candidates: every accepted closure, with no strain asked
+robust.STRAIN = 0.0
 kernels = [k for k in gc.get_objects() if isinstance(k, CPUDispatcher)]
 before = {k: len(k.signatures) for k in kernels}
 solve_exact(graph, init=init, robust=RobustConfig())

@@ -50,9 +50,12 @@ def test_the_bound_is_never_below_the_deletion_chi2(solved, picks, hops):
     assert np.all(bound >= exact * (1 - 1e-7) - 1e-9)
 
 
-def test_a_neighbourhood_of_the_whole_graph_bounds_it_exactly(solved):
+def test_a_neighbourhood_of_the_whole_graph_bounds_it_exactly(solved, monkeypatch):
     """Reaching every pose, the neighbourhood is the graph: the bound is the deletion χ²."""
+    from h2o_slam.core import neighbourhood
+
     solver, closures = solved
+    monkeypatch.setattr(neighbourhood, "MAX_UNKNOWNS", solver.num_nodes * solver.p)
     groups = [closures[[i]] for i in range(0, len(closures), 7)] + [closures[:3]]
     exact = group_chi2(solver, groups, sign=-1.0)
     np.testing.assert_allclose(deletion_bounds(solver, groups, solver.num_nodes), exact,
@@ -69,14 +72,21 @@ def test_one_edge_around_bounds_a_closure_of_a_sphere_closely(solved):
     assert np.median(ratio[np.isfinite(ratio)]) < 2.0
 
 
-def test_no_bound_where_the_group_alone_holds_its_ends():
+def test_no_bound_where_the_group_alone_holds_its_ends(monkeypatch):
     """A closure with no other way between its ends in the neighbourhood (none of its
-    neighbours taken) has no bound; a GPS fix neither."""
+    neighbours taken) has no bound; a GPS fix neither, nor a neighbourhood too large."""
+    from h2o_slam.core import neighbourhood
+
     graph = manhattan(200, seed=3, gps_every=10).graph
     solver, closures = _solved(graph, "tree")
     assert np.all(np.isinf(deletion_bounds(solver, [closures[[0]]], 0)))
     fixes = np.flatnonzero(solver.kind[:solver.num_edges] == EdgeKind.POSITION)
-    assert np.isinf(deletion_bounds(solver, [fixes[:1]], 2)[0])
+    assert np.isinf(deletion_bounds(solver, [fixes[:1], fixes[:1]], 2)).all()
+    groups = [closures[[i]] for i in range(len(closures))]
+    bounded = groups[int(np.argmax(np.isfinite(deletion_bounds(solver, groups, 2))))]
+    assert np.isfinite(deletion_bounds(solver, [bounded], 2)[0])
+    monkeypatch.setattr(neighbourhood, "MAX_UNKNOWNS", 3 * solver.p)
+    assert np.isinf(deletion_bounds(solver, [bounded], 2)[0])
 
 
 @pytest.mark.parametrize("weight", [0.0, 0.05])

@@ -67,7 +67,7 @@ from h2o_slam.core.robust import (
     thresholds,
 )
 from h2o_slam.core.solver import SolverConfig
-from h2o_slam.core.warmup import false_ring, load_selected_inverse, warm_up
+from h2o_slam.core.warmup import false_ring, load_closure_scoring, warm_up
 from h2o_slam.io.g2o import read_g2o, write_g2o
 from h2o_slam.io.synthetic import add_gps
 
@@ -382,7 +382,7 @@ def _load(graph: PoseGraph, opt: SolveOptions) -> float:
         solve_exact(false_ring(graph.planar), 5, init=opt.init if usable else "tree",
                     robust=opt.robust_config)
         if opt.robust_config is not None:
-            load_selected_inverse()
+            load_closure_scoring()
     else:
         warm_up()
     return time.perf_counter() - start
