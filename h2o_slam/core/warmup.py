@@ -151,7 +151,6 @@ def load_closure_scoring() -> None:
     the selected inverse's, and the neighbourhood bounds on drop candidates."""
     import scipy.sparse as sp
 
-    from h2o_slam.core.modes import build_solver
     from h2o_slam.core.neighbourhood import deletion_bounds
     from h2o_slam.core.selinv import selected_inverse
     from h2o_slam.core.spd import upper
@@ -161,7 +160,9 @@ def load_closure_scoring() -> None:
     if selected is not None:  # without CHOLMOD no robust solve has one either
         selected.blocks(np.array([[0, 2, -1]]))
     for planar in (True, False):
-        solver, _ = build_solver(false_ring(planar), init="tree", regularizer=False)
+        ring = false_ring(planar)
+        solver = H2OSolver.from_graph(ring, np.arange(-1, ring.num_nodes - 1),
+                                      regularizer=False)
         deletion_bounds(solver, [np.array([0])], 1)
 
 
