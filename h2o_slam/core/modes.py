@@ -266,6 +266,8 @@ def solve_exact(
     starts = [init] if init != "tree" else (
         ["tree", "lago"] if graph.planar and not has_global(graph) else ["tree"])
     results = [_solve_robust(graph, iterations, config, name, robust) for name in starts]
+    if len(results) == 1:
+        return results[0]
     trusted = odometry_edges(graph.kind, graph.a, graph.b)
     scored = [(_weights(result), edge_chi2(graph, result.R, result.t)) for result in results]
     return results[lowest_cost(graph, trusted, robust, scored)]
