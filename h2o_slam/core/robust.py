@@ -64,7 +64,7 @@ from h2o_slam.core.graph import (
     has_global,
     odometry_chain,
 )
-from h2o_slam.core.neighbourhood import deletion_bounds, whitened_terms
+from h2o_slam.core.neighbourhood import Neighbourhoods, whitened_terms
 from h2o_slam.core.selinv import SelectedInverse, selected_inverse
 from h2o_slam.core.solver import H2OSolver
 from h2o_slam.core.spd import SPDFactor, positions, upper, with_entries
@@ -817,16 +817,18 @@ def _significant_drops(solver: H2OSolver, inside: np.ndarray, c2: Array,
 def _screened_deletion(solver: H2OSolver, groups: list[np.ndarray], bars: Array) -> Array:
     """Each group's deletion χ² (:func:`group_chi2`, ``sign`` −1) where it may exceed its
     bar, else an upper bound on it at most the bar: the edges around each group bound it
-    first (:func:`~h2o_slam.core.neighbourhood.deletion_bounds`, :data:`BOUND_HOPS`), and
-    only the groups no bound clears are scored on the whole graph. The whole graph's
+    first (:func:`~h2o_slam.core.neighbourhood.deletion_bounds` at each of
+    :data:`BOUND_HOPS`, the map's Jacobians taken once for all of them), and only the
+    groups no bound clears are scored on the whole graph. The whole graph's
     covariance at a few closures costs a factorization and a selected inverse (0.35 s on a
     2,200-pose sphere), a closure's neighbourhood tens of microseconds."""
     out = np.full(len(groups), np.nan)
     doubt = np.arange(len(groups))
+    around = Neighbourhoods(solver)
     for hops in BOUND_HOPS:
         if not len(doubt):
             break
-        bound = deletion_bounds(solver, [groups[i] for i in doubt], hops)
+        bound = around.bounds([groups[i] for i in doubt], hops)
         cleared = bound <= bars[doubt]
         out[doubt[cleared]] = bound[cleared]
         doubt = doubt[~cleared]
