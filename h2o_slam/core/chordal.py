@@ -15,11 +15,12 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.linalg import lapack
 
 from h2o_slam.core.errors import GraphError
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EdgeKind, PoseGraph
-from h2o_slam.core.spd import SPDFactor, upper
+from h2o_slam.core.spd import SPDFactor
 
 
 def chordal(graph: PoseGraph, weights: Array | None = None) -> tuple[Array, Array]:
@@ -38,60 +39,78 @@ def chordal(graph: PoseGraph, weights: Array | None = None) -> tuple[Array, Arra
     # One scalar weight per edge and block: the mean of the information's diagonal.
     w_rot = w[keep] * np.mean(np.diagonal(info[:, 3:, 3:], axis1=1, axis2=2), axis=1)
     w_pos = w[keep] * np.mean(np.diagonal(info[:, :3, :3], axis1=1, axis2=2), axis=1)
-    R = _rotations(graph.num_nodes, a, b, graph.meas_R[keep], w_rot)
-    t = _translations(graph.num_nodes, a, b, R, graph.meas_t[keep], w_pos)
-    return R, t
+    n = graph.num_nodes
+    # R_b = R_a R_ab row by row: with u a row of a rotation as a column vector,
+    # u_b − R_abᵀ u_a = 0, three right-hand sides (one per row), node 0's rows those of I.
+    C = -np.swapaxes(graph.meas_R[keep], 1, 2)
+    U = _anchored_least_squares(n, a, b, C, np.zeros((len(a), 3, 3)), w_rot, np.eye(3))
+    R = _nearest_rotations(U.transpose(0, 2, 1))
+    # Given the rotations, t_b − t_a = R_a t_ab is linear in the translations.
+    d = np.einsum("eij,ej->ei", R[a], graph.meas_t[keep])[:, None, :]
+    t = _anchored_least_squares(n, a, b, np.full((len(a), 1, 1), -1.0), d, w_pos,
+                                np.zeros((1, 3)))
+    return R, t[:, 0, :]
 
 
-def _rotations(n: int, a: np.ndarray, b: np.ndarray, meas_R: Array, w: Array) -> Array:
-    """``R_b = R_a R_ab`` row by row: with ``u`` a row of a rotation as a column vector,
-    ``u_b − R_abᵀ u_a = 0``; three right-hand sides, one per row, node 0's rows known."""
-    m = len(a)
-    rows = np.arange(3 * m).reshape(m, 3)
-    # u_b: identity blocks; u_a: −R_abᵀ blocks.
-    r_b = rows.ravel()
-    c_b = (3 * b[:, None] + np.arange(3)).ravel()
-    v_b = np.ones(3 * m)
-    r_a = np.repeat(rows[:, :, None], 3, axis=2).ravel()
-    c_a = np.repeat((3 * a[:, None] + np.arange(3))[:, None, :], 3, axis=1).ravel()
-    v_a = -np.swapaxes(meas_R, 1, 2).ravel()
-    A = sp.csr_matrix((np.concatenate([v_b, v_a]), (np.concatenate([r_b, r_a]),
-                                                    np.concatenate([c_b, c_a]))),
-                      shape=(3 * m, 3 * n))
-    u0 = np.eye(3)  # node 0's three rows, as the three right-hand sides' known unknowns
-    X = _anchored_least_squares(A, np.zeros((3 * m, 3)), np.repeat(w, 3), 3, u0, n)
-    M = X.reshape(n, 3, 3).transpose(0, 2, 1)  # node i: rows of its matrix
-    return _nearest_rotations(M)
+#: Most unknowns solved as one dense matrix: below it LAPACK's dense Cholesky is faster than
+#: assembling and analysing a sparse one (measured: 0.3 against 0.6 ms at 24 unknowns, 1.4
+#: against 1.1 ms at 150).
+DENSE_MAX = 96
 
 
-def _translations(n: int, a: np.ndarray, b: np.ndarray, R: Array, meas_t: Array,
-                  w: Array) -> Array:
-    """``t_b − t_a = R_a t_ab`` for the rotations found, node 0 at the origin."""
-    m = len(a)
-    D = sp.csr_matrix((np.concatenate([np.ones(m), -np.ones(m)]),
-                       (np.tile(np.arange(m), 2), np.concatenate([b, a]))), shape=(m, n))
-    rhs = np.einsum("eij,ej->ei", R[a], meas_t)
-    return _anchored_least_squares(D, rhs, w, 1, np.zeros((1, 3)), n)
+def _anchored_least_squares(n: int, a: np.ndarray, b: np.ndarray, C: Array, d: Array,
+                            w: Array, anchor: Array) -> Array:
+    """``min Σ_e w_e ‖x_b + C_e x_a − d_e‖²`` over every node's ``x`` ``(k, c)``: ``C``
+    ``(m, k, k)``, ``d`` ``(m, k, c)``, node 0 held at ``anchor`` ``(k, c)``. Returns ``x``
+    ``(n, k, c)``.
 
-
-def _anchored_least_squares(A: sp.csr_matrix, B: Array, w: Array, block: int,
-                            anchor: Array, n: int) -> Array:
-    """``min Σ w (A X − B)²`` with node 0's ``block`` unknowns fixed to ``anchor``; returns
-    every node's unknowns ``(n·block, k)``."""
-    A = A.tocsc()
-    fixed = A[:, :block]
-    free = A[:, block:]
-    rhs = B - fixed @ anchor
-    W = sp.diags(w)
-    U = upper(free.T @ W @ free)
-    g = np.asarray(free.T @ (W @ rhs))
-    try:  # the exact mode's sparse Cholesky (CHOLMOD where installed)
-        X = SPDFactor(U.indptr, U.indices).solve(U.data, g).reshape(-1, rhs.shape[1])
-    except np.linalg.LinAlgError as err:
-        raise GraphError(f"the edges do not connect every node to node 0 ({err})") from None
+    Raises:
+        GraphError: the edges leave a node's unknowns undetermined.
+    """
+    k = C.shape[1]
+    # Node 0's known unknowns move to the right-hand side.
+    d = d - (a == 0)[:, None, None] * (C @ anchor) - (b == 0)[:, None, None] * anchor
+    J = np.concatenate([C, np.broadcast_to(np.eye(k), C.shape)], axis=2)  # [x_a | x_b]
+    JtW = np.swapaxes(J, 1, 2) * w[:, None, None]
+    H, g = JtW @ J, JtW @ d  # (m, 2k, 2k), (m, 2k, c)
+    size = (n - 1) * k
+    var = np.concatenate([(a - 1)[:, None] * k, (b - 1)[:, None] * k], axis=1)
+    var = (np.repeat(var, k, axis=1) + np.tile(np.arange(k), 2))
+    var[np.repeat(np.stack([a == 0, b == 0], axis=1), k, axis=1)] = size  # held: dropped
+    rhs = np.zeros((size + 1, d.shape[2]))
+    np.add.at(rhs, var.ravel(), g.reshape(-1, d.shape[2]))
+    rows = np.broadcast_to(var[:, :, None], H.shape).ravel()
+    cols = np.broadcast_to(var[:, None, :], H.shape).ravel()
+    solve = _dense_solve if size <= DENSE_MAX else _sparse_solve
+    X = solve(rows, cols, H.ravel(), rhs[:size], size)
     if not np.all(np.isfinite(X)):
         raise GraphError("the edges do not connect every node to node 0")
-    return np.vstack([anchor, X]).reshape(n * block, -1)
+    return np.concatenate([anchor[None], X.reshape(n - 1, k, -1)])
+
+
+def _dense_solve(rows: np.ndarray, cols: np.ndarray, values: Array, rhs: Array,
+                 size: int) -> Array:
+    if size == 0:
+        return rhs
+    H = np.zeros((size + 1, size + 1))
+    np.add.at(H, (rows, cols), values)
+    H = np.asfortranarray(H[:size, :size])
+    L, info = lapack.dpotrf(H, lower=1)
+    # An unconstrained direction leaves a pivot at rounding level rather than failing.
+    if info != 0 or np.min(np.diagonal(L)) ** 2 <= 1e-12 * np.max(np.diagonal(H)):
+        raise GraphError("the edges do not connect every node to node 0")
+    return lapack.dpotrs(L, rhs, lower=1)[0]
+
+
+def _sparse_solve(rows: np.ndarray, cols: np.ndarray, values: Array, rhs: Array,
+                  size: int) -> Array:
+    keep = (rows < size) & (cols < size) & (rows <= cols)
+    U = sp.csc_matrix((values[keep], (rows[keep], cols[keep])), shape=(size, size))
+    U.sort_indices()
+    try:  # the exact mode's sparse Cholesky (CHOLMOD where installed)
+        return SPDFactor(U.indptr, U.indices).solve(U.data, rhs)
+    except np.linalg.LinAlgError as err:
+        raise GraphError(f"the edges do not connect every node to node 0 ({err})") from None
 
 
 def _nearest_rotations(M: Array) -> Array:

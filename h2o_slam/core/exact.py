@@ -105,7 +105,7 @@ class ExactSystem:
         """The damped Gauss–Newton step ``(δx, ω)`` of every node, ``(n, 6)`` (zero where held)."""
         solver, system = self.solver, lin.system
         step = np.zeros((solver.num_nodes, 6))
-        step[np.ix_(system.free, solver.dof)] = -system.solve(
+        step[system.free[:, None], solver.dof] = -system.solve(
             system.damped(lin.data, damping), lin.g).reshape(len(system.free), solver.p)
         return step
 

@@ -8,6 +8,7 @@ import pytest
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
+from h2o_slam.core import chordal as chordal_module
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.chordal import _nearest_rotations, chordal
 from h2o_slam.core.errors import GraphError
@@ -79,3 +80,21 @@ def test_edges_that_leave_a_node_unconnected_are_an_error() -> None:
     graph = _graph(R, t, np.array([0, 1]), np.array([1, 2]))
     with pytest.raises(GraphError):
         chordal(graph)
+
+
+@pytest.mark.parametrize("dense_max", [0, 10_000])
+def test_the_dense_and_sparse_solves_agree(monkeypatch, dense_max) -> None:
+    """The small graphs' dense solve and the sparse one give the same start, weighted edges
+    and edges into the held node 0 included; both refuse a node no edge reaches."""
+    graph = grid3d(40, seed=6, sigma_rot_rad=0.1).graph
+    weights = np.random.default_rng(7).uniform(0.3, 2.0, graph.num_edges)
+    closures = np.flatnonzero(graph.b != graph.a + 1)
+    weights[closures[::2]] = 0.0  # left out, as the robust weights leave outliers out
+    expected = chordal(graph, weights)  # 117 rotation unknowns, 39 translation: both paths
+    monkeypatch.setattr(chordal_module, "DENSE_MAX", dense_max)
+    got = chordal(graph, weights)
+    np.testing.assert_allclose(got[0], expected[0], atol=1e-9)
+    np.testing.assert_allclose(got[1], expected[1], atol=1e-9)
+    R, t = _world(4, seed=5)
+    with pytest.raises(GraphError):
+        chordal(_graph(R, t, np.array([0, 1]), np.array([1, 2])))

@@ -11,6 +11,8 @@ from h2o_slam.core import spd
 from h2o_slam.core.spd import METHODS, SPDFactor, solve_spd, upper
 
 BACKENDS = [m for m in METHODS[1:] if spd.available(m)]
+#: The backends and ``auto``, which factors these tests' matrices (60 unknowns) densely.
+WITH_DENSE = [*BACKENDS, "auto"]
 
 
 def random_spd(seed: int, n: int = 60, density: float = 0.05) -> sp.csc_matrix:
@@ -26,7 +28,7 @@ def test_the_default_install_has_cholmod():
     assert spd.resolve("auto") == "cholmod"
 
 
-@pytest.mark.parametrize("method", BACKENDS)
+@pytest.mark.parametrize("method", WITH_DENSE)
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_solves_equal_scipy(method, seed):
     H = random_spd(seed)
@@ -35,7 +37,7 @@ def test_solves_equal_scipy(method, seed):
     np.testing.assert_allclose(solve_spd(H, g, method), expected, rtol=1e-9, atol=1e-10)
 
 
-@pytest.mark.parametrize("method", BACKENDS)
+@pytest.mark.parametrize("method", WITH_DENSE)
 @pytest.mark.parametrize("seed", [0, 1])
 def test_split_solves_give_the_quadratic_forms_of_the_inverse(method, seed):
     """``Yᵀ Z = Bᵀ H⁻¹ B`` for several right-hand sides, whatever factor the backend keeps
@@ -50,7 +52,7 @@ def test_split_solves_give_the_quadratic_forms_of_the_inverse(method, seed):
     np.testing.assert_allclose(y @ z, expected[2, 2], rtol=1e-9, atol=1e-9)
 
 
-@pytest.mark.parametrize("method", BACKENDS)
+@pytest.mark.parametrize("method", WITH_DENSE)
 def test_refactorization_with_the_kept_pattern_equals_a_fresh_one(method):
     H = random_spd(3)
     U = upper(H)
@@ -67,7 +69,7 @@ def test_refactorization_with_the_kept_pattern_equals_a_fresh_one(method):
         np.testing.assert_allclose(full @ fresh, g, rtol=0, atol=1e-9)
 
 
-@pytest.mark.parametrize("method", BACKENDS)
+@pytest.mark.parametrize("method", WITH_DENSE)
 def test_only_the_upper_triangle_is_read(method):
     H = random_spd(5)
     g = np.ones(H.shape[0])
@@ -75,18 +77,28 @@ def test_only_the_upper_triangle_is_read(method):
     np.testing.assert_allclose(solve_spd(skewed, g, method), spla.spsolve(H, g), rtol=1e-9)
 
 
-@pytest.mark.parametrize("method", BACKENDS)
+@pytest.mark.parametrize("method", WITH_DENSE)
 def test_a_singular_matrix_is_a_linalg_error(method):
     singular = sp.csc_matrix(np.diag([1.0, 0.0, 2.0]))
     with pytest.raises(np.linalg.LinAlgError, match="singular"):
         solve_spd(singular, np.ones(3), method)
 
 
-@pytest.mark.parametrize("method", BACKENDS)
+@pytest.mark.parametrize("method", WITH_DENSE)
 def test_an_indefinite_matrix_is_handed_to_superlu(method):
     # Not positive definite: CHOLMOD finds no factor; SuperLU solves it all the same.
     H = sp.csc_matrix(np.array([[1.0, 2.0], [2.0, 1.0]]))
     np.testing.assert_allclose(solve_spd(H, np.array([3.0, 3.0]), method), [1.0, 1.0])
+
+
+def test_auto_factors_small_matrices_densely():
+    for n, dense in ((spd.DENSE_MAX, True), (spd.DENSE_MAX + 1, False)):
+        H = random_spd(n, n=n)
+        U = upper(H)
+        factor = SPDFactor(U.indptr, U.indices)
+        g = np.ones(n)
+        np.testing.assert_allclose(factor.solve(U.data, g), spla.spsolve(H, g), rtol=1e-9)
+        assert isinstance(factor._backend, spd._Dense) == dense
 
 
 def test_an_empty_system_has_an_empty_solution():
