@@ -480,15 +480,20 @@ class Spectrum:
         psd: ``S + ηI`` is positive definite (its factorization has no negative pivot).
         converged: the eigensolver converged (else ``lambda_min`` is its best Ritz value,
             an upper bound of ``λ_min``).
+        vector: the eigenvector of ``lambda_min``, shape ``(n·d,)``, when asked for and
+            ``S + ηI`` is not positive definite (a direction of negative curvature).
     """
 
     lambda_min: float
     psd: bool
     converged: bool
+    vector: Array | None = None
 
 
-def min_eigenvalue(reduced: ReducedProblem, Lam: Array, eta: float) -> Spectrum:
-    """``λ_min(S)``, ``S = Q − Λ`` with ``Λ`` blocks ``(n, d, d)``, and whether ``S + ηI ≻ 0``.
+def min_eigenvalue(reduced: ReducedProblem, Lam: Array, eta: float, vector: bool = False
+                   ) -> Spectrum:
+    """``λ_min(S)``, ``S = Q − Λ`` with ``Λ`` blocks ``(n, d, d)``, and whether ``S + ηI ≻ 0``;
+    ``vector``: with its eigenvector when ``S + ηI`` is not positive definite.
 
     ``S + ηI`` is the Schur complement of the sparse matrix
     ``K = [[L_r, −Ṽ_r], [−Ṽ_rᵀ, A − Λ + ηI]]`` (``L_r``, ``Ṽ_r``: the held nodes' rows
@@ -546,13 +551,16 @@ def min_eigenvalue(reduced: ReducedProblem, Lam: Array, eta: float) -> Spectrum:
 
     op = spla.LinearOperator((nd, nd), matvec=shifted, dtype=float)
     try:
-        top = spla.eigsh(op, k=1, which="LA", v0=v0, tol=1e-8, ncv=min(nd, 64),
-                         maxiter=max(1000, nd), return_eigenvectors=False)[0]
-        return Spectrum(float(c - top), False, True)
+        tops, vectors = spla.eigsh(op, k=1, which="LA", v0=v0, tol=1e-8, ncv=min(nd, 64),
+                                   maxiter=max(1000, nd), return_eigenvectors=True)
+        return Spectrum(float(c - tops[0]), False, True, vectors[:, 0] if vector else None)
     except spla.ArpackNoConvergence as err:
         values = err.eigenvalues
-        top = float(np.max(values)) if len(values) else c
-        return Spectrum(float(c - top), False, False)
+        if not len(values):
+            return Spectrum(0.0, False, False)
+        best = int(np.argmax(values))
+        return Spectrum(float(c - values[best]), False, False,
+                        err.eigenvectors[:, best] if vector else None)
 
 
 @dataclass(frozen=True)

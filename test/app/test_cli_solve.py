@@ -411,10 +411,11 @@ def test_a_local_minimum_is_not_certified(tmp_path, capsys):
     src, report = tmp_path / "ring.g2o", tmp_path / "r.json"
     src.write_text(RING)
     code, err, _ = run([str(src), "-o", str(tmp_path / "o.g2o"), "--init", "input",
-                        "--robust", "off", "--report", str(report), "-q"], capsys)
+                        "--robust", "off", "--report", str(report), "-q",
+                        "--staircase", "off"], capsys)
     data = json.loads(report.read_text())
     cert = data["certificate"]
-    assert code == 0 and data["chi2_final"] > 500
+    assert code == 0 and data["chi2_final"] > 500 and data["staircase"] is None
     assert err == [f"h2o-solve: could not certify: λ_min = {cert['lambda_min']:.3g} < "
                    f"-{cert['tolerance']:.3g}"]
     assert cert["certified"] is False and cert["lambda_min"] < -1.0
@@ -423,6 +424,29 @@ def test_a_local_minimum_is_not_certified(tmp_path, capsys):
                         "--report", str(report), "-q"], capsys)
     data = json.loads(report.read_text())
     assert data["chi2_final"] < 2.0 and data["certificate"]["certified"] is True
+
+
+def test_the_staircase_leads_out_of_a_local_minimum(tmp_path, capsys):
+    """By default an uncertified solution is solved again from SE-Sync's staircase: the ring
+    started in its local minimum ends at the global one, certified, and the time reported
+    is the written answer's (the certificate and the climb included)."""
+    src, out, report = tmp_path / "ring.g2o", tmp_path / "o.g2o", tmp_path / "r.json"
+    src.write_text(RING)
+    code, err, _ = run([str(src), "-o", str(out), "--init", "input", "--robust", "off",
+                        "--report", str(report), "-q"], capsys)
+    data = json.loads(report.read_text())
+    stair, cert = data["staircase"], data["certificate"]
+    assert code == 0 and stair["adopted"] and stair["relaxation_solved"]
+    assert stair["chi2_before"] > 500 and stair["chi2_after"] < 2.0
+    assert err == [f"h2o-solve: not certified; SE-Sync's Riemannian staircase (rank "
+                   f"{stair['rank']}) and exact mode from its rounded point: chi2 "
+                   f"{stair['chi2_before']:.6g} -> {stair['chi2_after']:.6g}, written",
+                   f"h2o-solve: {cert['message']}"]
+    assert cert["certified"] is True
+    graph, solved = read_g2o(src), read_g2o(out)
+    assert data["chi2_final"] == pytest.approx(chi2(graph, solved.R, solved.t), rel=1e-9)
+    assert data["chi2_final"] == pytest.approx(stair["chi2_after"], rel=1e-12)
+    assert data["wall_s"] > stair["seconds"] > stair["climb_s"] > 0.0
 
 
 def test_certify_option(planar_file, tmp_path, capsys):
