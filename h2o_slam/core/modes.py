@@ -18,7 +18,6 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -39,9 +38,6 @@ from h2o_slam.core.robust import (
 )
 from h2o_slam.core.solver import H2OSolver, SolverConfig
 from h2o_slam.core.tree import PoseTree, spanning_parents, tree_edges
-
-if TYPE_CHECKING:
-    from h2o_slam.core.staircase import Climb
 
 
 @dataclass
@@ -270,10 +266,11 @@ def solve_exact(
     starts = [init] if init != "tree" else (
         ["tree", "lago"] if graph.planar and not has_global(graph) else ["tree"])
     results = [_solve_robust(graph, iterations, config, name, robust) for name in starts]
-    return results[0] if len(results) == 1 else results[_lowest(graph, robust, results)]
+    return results[0] if len(results) == 1 else results[lowest_result(graph, robust, results)]
 
 
-def _lowest(graph: PoseGraph, robust: RobustConfig | None, results: list[SolveResult]) -> int:
+def lowest_result(graph: PoseGraph, robust: RobustConfig | None,
+                  results: list[SolveResult]) -> int:
     """Which of ``results`` ends lowest: in χ² over every edge, or robustly in the truncated
     cost of each one's own decisions (:func:`~h2o_slam.core.robust.lowest_cost`)."""
     if robust is None:
@@ -281,41 +278,6 @@ def _lowest(graph: PoseGraph, robust: RobustConfig | None, results: list[SolveRe
     trusted = odometry_edges(graph.kind, graph.a, graph.b)
     scored = [(_weights(result), edge_chi2(graph, result.R, result.t)) for result in results]
     return lowest_cost(graph, trusted, robust, scored)
-
-
-#: Relative χ² change below which the staircase's answer is the solve's own basin again
-#: (both stop at the exact solver's tolerance): the solve's answer is kept.
-STAIRCASE_GAIN = 1e-4
-
-
-def staircase_solve(
-    graph: PoseGraph, result: SolveResult, iterations: int = EXACT_ITERATIONS,
-    config: SolverConfig | None = None, robust: RobustConfig | None = None,
-) -> tuple[SolveResult, Climb, bool]:
-    """Exact mode again from SE-Sync's Riemannian staircase climbed from the exact solve
-    ``result`` over the edges it kept (:mod:`h2o_slam.core.staircase`), for a solution the
-    certificate could not certify: where the relaxation is not exact the rounded point may
-    still start the descent in a lower basin. The robust decisions are taken again from
-    there.
-
-    Returns the answer that ends lower (:func:`solve_exact`'s comparison of starts, and χ²
-    over every edge changed by more than :data:`STAIRCASE_GAIN` of it; the second's
-    ``chi2_per_pass`` follows the first's), the climb, and whether the staircase's answer is
-    the one returned.
-    """
-    from h2o_slam.core.staircase import staircase_start  # scipy's eigensolvers: 0.1-0.2 s
-
-    keep = None if result.weights is None else result.weights > 0.5
-    R, t, climb = staircase_start(graph, result.R, result.t, keep)
-    again = solve_exact(graph.with_estimate(R, t), iterations, config, init="input",
-                        robust=robust)
-    before, after = chi2(graph, result.R, result.t), chi2(graph, again.R, again.t)
-    if (_lowest(graph, robust, [result, again]) == 0
-            or abs(before - after) <= STAIRCASE_GAIN * max(before, 1e-300)):
-        return result, climb, False
-    again.chi2_initial, again.start, again.init = result.chi2_initial, result.start, result.init
-    again.chi2_per_pass = result.chi2_per_pass + again.chi2_per_pass
-    return again, climb, True
 
 
 def _weights(result: SolveResult) -> Array:

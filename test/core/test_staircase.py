@@ -13,8 +13,15 @@ from test_certificate import ring, ring_start
 
 from h2o_slam.core import certificate as C
 from h2o_slam.core import geometry as geo
-from h2o_slam.core.modes import solve_exact, staircase_solve
-from h2o_slam.core.staircase import RankProblem, climb, escape, round_rotations
+from h2o_slam.core.modes import solve_exact
+from h2o_slam.core.staircase import (
+    RankProblem,
+    climb,
+    escape,
+    round_rotations,
+    solve_rank,
+    staircase_solve,
+)
 
 
 def rank_problem(seed: int, planar: bool) -> RankProblem:
@@ -109,8 +116,6 @@ def test_escape_lowers_the_cost_one_rank_up() -> None:
     reduced = C.ReducedProblem(problem_data)
     problem = RankProblem(reduced)
     Rs, _ = C.sync_poses(graph, problem_data, local.R, local.t)
-    from h2o_slam.core.staircase import solve_rank
-
     M, _ = solve_rank(problem, np.swapaxes(Rs, 1, 2).copy())
     spectrum = C.min_eigenvalue(reduced, problem.lam(M, problem.q(M)), 0.0, vector=True)
     assert spectrum.lambda_min < 0.0 and spectrum.vector is not None

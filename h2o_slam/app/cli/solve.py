@@ -54,7 +54,6 @@ from h2o_slam.core.modes import (
     solve_lago,
     solve_offline,
     solve_online,
-    staircase_solve,
 )
 from h2o_slam.core.online import OnlineConfig
 from h2o_slam.core.robust import (
@@ -119,7 +118,8 @@ class SolveOptions:
             with SE-Sync's certificate (:mod:`h2o_slam.core.certificate`).
         staircase: ``auto`` (the default): when the certificate fails, climb SE-Sync's
             Riemannian staircase from the solution and solve again from its rounded point,
-            keeping the answer that ends lower (:func:`~h2o_slam.core.modes.staircase_solve`);
+            keeping the answer that ends lower
+            (:func:`~h2o_slam.core.staircase.staircase_solve`);
             ``off``: report the failure only.
     """
 
@@ -340,6 +340,9 @@ def _climbed(graph: PoseGraph, opt: SolveOptions, passes: int, result: SolveResu
              ) -> tuple[SolveResult, dict[str, Any]]:
     """Exact mode again from SE-Sync's staircase climbed from an uncertified ``result``; the
     answer that ends lower and the report's account of the climb."""
+    # Imported here: scipy's eigensolvers add 0.1-0.2 s to every start-up otherwise.
+    from h2o_slam.core.staircase import staircase_solve
+
     start = time.perf_counter()
     config = SolverConfig(gps_batch_size=opt.gps_batch_size, exact_tolerance=opt.tolerance)
     before = chi2(graph, result.R, result.t)
