@@ -162,3 +162,22 @@ def test_the_climb_from_the_optimum_of_a_small_graph_stays_at_rank_d(planar: boo
     refined = C.refine(problem, Rs, ts).R
     np.testing.assert_allclose(np.swapaxes(out.R[:1], 1, 2) @ out.R,
                                np.swapaxes(refined[:1], 1, 2) @ refined, atol=1e-5)
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_the_start_keeps_the_earth_frame_of_gps_fixes(planar: bool) -> None:
+    """With GPS fixes the rounded point is put back in the earth frame (the problem's last
+    node at the identity): from the optimum its χ² is near the optimum's, where a start in
+    another frame would miss every fix by metres."""
+    from h2o_slam.core.graph import chi2, has_global
+    from h2o_slam.core.staircase import staircase_start
+
+    graph = random_graph(5, planar, n=8, loops=3, gps=4)
+    assert has_global(graph)
+    optimum = solve_exact(graph, init="input")
+    R, t, out = staircase_start(graph, optimum.R, optimum.t)
+    assert out.relaxation_solved
+    assert chi2(graph, R, t) < 1.5 * chi2(graph, optimum.R, optimum.t)
+    # the map turned as a whole: the relative edges do not see it, the fixes do
+    G = geo.so3_exp(np.array([0.0, 0.0, 1.0]))
+    assert chi2(graph, G @ R, t @ G.T) > 3.0 * chi2(graph, optimum.R, optimum.t)
