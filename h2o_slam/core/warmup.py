@@ -166,12 +166,13 @@ def load_closure_scoring() -> None:
         deletion_bounds(solver, [np.array([0])], 1)
 
 
-def false_ring(planar: bool, n: int = 12) -> PoseGraph:
+def false_ring(planar: bool, n: int = 12, false_closure: bool = True) -> PoseGraph:
     """``n`` poses on a circle of 1 m steps, each joined to the next (the last to the
     first: the true loop closure), and a false closure across the ring (5 m straight
     ahead, where the two poses, 3.9 m apart, face opposite ways): a robust exact solve of
     it runs every path a solve of a graph of the same kind runs (``h2o-solve`` loads exact
-    mode's kernels with it before its clock starts)."""
+    mode's kernels with it before its clock starts). ``false_closure=False``: the ring
+    alone, a graph without outliers."""
     yaw = np.arange(n, dtype=np.float64) * (2.0 * np.pi / n)
     radius = 0.5 / np.sin(np.pi / n)  # 1 m steps
     # Off the measurements' ring a little (3-D: out of its plane too), so that every
@@ -187,8 +188,9 @@ def false_ring(planar: bool, n: int = 12) -> PoseGraph:
     step = np.tile([1.0, 0.0, 0.0], (n + 1, 1))
     step[-1] = [5.0, 0.0, 0.0]
     info = np.tile(100.0 * np.eye(6), (n + 1, 1, 1))
-    return make_graph(planar, np.arange(n), R, t, np.full(n + 1, EdgeKind.RELATIVE), a, b,
-                      turn, step, info)
+    m = n + 1 if false_closure else n
+    return make_graph(planar, np.arange(n), R, t, np.full(m, EdgeKind.RELATIVE), a[:m], b[:m],
+                      turn[:m], step[:m], info[:m])
 
 
 def byte_compile() -> None:

@@ -213,6 +213,18 @@ def test_progress_line_after_a_second_and_quiet(planar_file, tmp_path, capsys):
     with ProgressLine("h2o-solve", period_s=0.05, stream=stream, enabled=False):
         time.sleep(0.15)
     assert stream.getvalue() == ""
+    # Started ahead of the work, the line waits for the block: nothing before it is entered,
+    # its clock from the entry; closed without entering, its thread ends.
+    stream = io.StringIO()
+    line = ProgressLine("h2o-solve", period_s=0.05, stream=stream).start()
+    time.sleep(0.15)
+    assert stream.getvalue() == ""
+    with line:
+        time.sleep(0.12)
+    assert stream.getvalue().splitlines()[0] == "h2o-solve: working (0 s)"
+    unused = ProgressLine("h2o-solve", period_s=0.05, stream=io.StringIO()).start()
+    unused.close()
+    assert not unused._thread.is_alive()
     # A solve shorter than the period prints nothing (the certificate's line is no progress).
     code, err, _ = run([str(planar_file), "-o", str(tmp_path / "o.g2o"), "--certify", "off"],
                        capsys)
