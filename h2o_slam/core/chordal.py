@@ -77,8 +77,10 @@ def _anchored_least_squares(n: int, a: np.ndarray, b: np.ndarray, C: Array, d: A
     var = np.concatenate([(a - 1)[:, None] * k, (b - 1)[:, None] * k], axis=1)
     var = (np.repeat(var, k, axis=1) + np.tile(np.arange(k), 2))
     var[np.repeat(np.stack([a == 0, b == 0], axis=1), k, axis=1)] = size  # held: dropped
-    rhs = np.zeros((size + 1, d.shape[2]))
-    np.add.at(rhs, var.ravel(), g.reshape(-1, d.shape[2]))
+    c = d.shape[2]
+    # bincount, not np.add.at: several times faster at summing repeated indices.
+    rhs = np.bincount((var[:, :, None] * c + np.arange(c)).ravel(), g.ravel(),
+                      minlength=(size + 1) * c).reshape(size + 1, c)
     rows = np.broadcast_to(var[:, :, None], H.shape).ravel()
     cols = np.broadcast_to(var[:, None, :], H.shape).ravel()
     solve = _dense_solve if size <= DENSE_MAX else _sparse_solve
@@ -92,9 +94,8 @@ def _dense_solve(rows: np.ndarray, cols: np.ndarray, values: Array, rhs: Array,
                  size: int) -> Array:
     if size == 0:
         return rhs
-    H = np.zeros((size + 1, size + 1))
-    np.add.at(H, (rows, cols), values)
-    H = np.asfortranarray(H[:size, :size])
+    H = np.bincount(rows * (size + 1) + cols, values, minlength=(size + 1) ** 2)
+    H = np.asfortranarray(H.reshape(size + 1, size + 1)[:size, :size])
     L, info = lapack.dpotrf(H, lower=1)
     # An unconstrained direction leaves a pivot at rounding level rather than failing.
     if info != 0 or np.min(np.diagonal(L)) ** 2 <= 1e-12 * np.max(np.diagonal(H)):
