@@ -79,8 +79,8 @@ def _anchored_least_squares(n: int, a: np.ndarray, b: np.ndarray, C: Array, d: A
     var[np.repeat(np.stack([a == 0, b == 0], axis=1), k, axis=1)] = size  # held: dropped
     c = d.shape[2]
     # bincount, not np.add.at: several times faster at summing repeated indices.
-    rhs = np.bincount((var[:, :, None] * c + np.arange(c)).ravel(), g.ravel(),
-                      minlength=(size + 1) * c).reshape(size + 1, c)
+    rhs = np.asarray(np.bincount((var[:, :, None] * c + np.arange(c)).ravel(), g.ravel(),
+                                 minlength=(size + 1) * c), dtype=float).reshape(size + 1, c)
     rows = np.broadcast_to(var[:, :, None], H.shape).ravel()
     cols = np.broadcast_to(var[:, None, :], H.shape).ravel()
     solve = _dense_solve if size <= DENSE_MAX else _sparse_solve
@@ -95,7 +95,7 @@ def _dense_solve(rows: np.ndarray, cols: np.ndarray, values: Array, rhs: Array,
     if size == 0:
         return rhs
     H = np.bincount(rows * (size + 1) + cols, values, minlength=(size + 1) ** 2)
-    H = np.asfortranarray(H.reshape(size + 1, size + 1)[:size, :size])
+    H = np.asfortranarray(H.reshape(size + 1, size + 1)[:size, :size], dtype=float)
     L, info = lapack.dpotrf(H, lower=1)
     # An unconstrained direction leaves a pivot at rounding level rather than failing.
     if info != 0 or np.min(np.diagonal(L)) ** 2 <= 1e-12 * np.max(np.diagonal(H)):
