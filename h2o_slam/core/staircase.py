@@ -233,8 +233,9 @@ def truncated_cg(problem: RankProblem, M: Array, Lam: Array, grad: Array, radius
 
 def escape(problem: RankProblem, M: Array, v: Array) -> Array | None:
     """From the critical point ``M`` of rank ``r`` along ``[0, αv]`` one rank up (``v`` the
-    eigenvector ``(n·d,)`` of ``S``'s negative eigenvalue): the first ``α`` halving from 1
-    whose retracted point lowers ``f``; None when none of 40 does."""
+    eigenvector ``(n·d,)`` of ``S``'s negative eigenvalue): the first ``α``, halving from
+    ``√n`` (``v`` scaled to unit norm: about a unit per block), whose retracted point lowers
+    ``f``; None when none of 40 does."""
     n, d, r = M.shape
     f = problem.cost(M)
     lifted = np.concatenate([M, np.zeros((n, d, 1))], axis=2)
