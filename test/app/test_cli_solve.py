@@ -461,6 +461,30 @@ def test_the_staircase_leads_out_of_a_local_minimum(tmp_path, capsys):
     assert data["wall_s"] > stair["seconds"] > stair["climb_s"] > 0.0
 
 
+def test_a_failing_staircase_leaves_the_solution_written(tmp_path, capsys, monkeypatch):
+    """The staircase is a second opinion: when it fails (here its eigensolver), the solve's
+    answer is written as it stands, and the report and console say why."""
+    import h2o_slam.core.staircase as staircase
+
+    def broken(*args, **kwargs):
+        raise ArithmeticError("not positive definite")
+
+    monkeypatch.setattr(staircase, "staircase_start", broken)
+    src, out, report = tmp_path / "ring.g2o", tmp_path / "o.g2o", tmp_path / "r.json"
+    src.write_text(RING)
+    code, err, _ = run([str(src), "-o", str(out), "--init", "input", "--robust", "off",
+                        "--report", str(report), "-q"], capsys)
+    data = json.loads(report.read_text())
+    stair = data["staircase"]
+    assert code == 0 and not stair["adopted"]
+    assert stair["error"] == "ArithmeticError: not positive definite"
+    assert err[0] == ("h2o-solve: not certified; SE-Sync's Riemannian staircase failed "
+                      "(ArithmeticError: not positive definite); the solution stands")
+    graph, solved = read_g2o(src), read_g2o(out)
+    assert chi2(graph, solved.R, solved.t) == pytest.approx(stair["chi2_before"], rel=1e-12)
+    assert stair["chi2_before"] > 500  # the local minimum, written
+
+
 def test_certify_option(planar_file, tmp_path, capsys):
     report = tmp_path / "r.json"
     for args in (["--certify", "off"], ["--mode", "offline"], ["--solver", "lago"]):
