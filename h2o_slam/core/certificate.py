@@ -75,7 +75,7 @@ from scipy.sparse.csgraph import connected_components
 from h2o_slam.core import geometry as geo
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EdgeKind, PoseGraph, edge_chi2
-from h2o_slam.core.spd import SPDFactor, upper
+from h2o_slam.core.spd import SPDFactor, symmetric_lu, upper
 
 #: ``η`` relative to the largest diagonal entry of ``L(G̃^ρ) + Σ̃`` (an upper bound of
 #: ``‖S‖`` up to a factor of the largest degree). SE-Sync's own defaults are absolute,
@@ -428,7 +428,7 @@ class ReducedProblem:
         self.L = L
         held = _anchors(n, i[weighted], j[weighted], False)
         self.free = np.setdiff1d(np.arange(n), held)
-        self._lu = _splu(L[self.free][:, self.free])
+        self._lu = symmetric_lu(L[self.free][:, self.free])
 
     def solve_laplacian(self, y: Array) -> Array:
         """``z`` with ``L(W^τ) z = y`` and ``z = 0`` at the held nodes, for ``y`` of shape
@@ -445,10 +445,8 @@ class ReducedProblem:
     def lambda_blocks(self, R: Array) -> Array:
         """``Λ = SymBlockDiag(Q XᵀX)`` at rotations ``R`` ``(n, d, d)``, as ``(n, d, d)``."""
         d, n = self.problem.d, self.problem.n
-        Xt = np.swapaxes(R, 1, 2).reshape(n * d, d)  # Xᵀ: block i is R_iᵀ
-        G = self.apply_q(Xt).reshape(n, d, d)  # block rows of Q Xᵀ
-        GR = G @ R
-        return 0.5 * (GR + np.swapaxes(GR, 1, 2))
+        Mt = np.swapaxes(R, 1, 2)  # Xᵀ: block i is R_iᵀ
+        return sym_blocks(self.apply_q(Mt.reshape(n * d, d)).reshape(n, d, d), Mt)
 
     def optimal_translations(self, R: Array) -> Array:
         """The translations minimizing ``F`` at rotations ``R``, shape ``(n, d)``, zero at
@@ -458,12 +456,12 @@ class ReducedProblem:
         return self.solve_laplacian(self.V @ Xt)
 
 
-def _splu(matrix: sp.spmatrix) -> spla.SuperLU:
-    """SuperLU of a symmetric matrix in symmetric mode with diagonal pivots (the
-    minimum-degree ordering of ``Aᵀ + A`` applied to rows and columns alike, so the
-    pivots' signs are the matrix's inertia; partial pivoting costs 10–100× more fill)."""
-    return spla.splu(sp.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                     options={"SymmetricMode": True})
+def sym_blocks(QM: Array, M: Array) -> Array:
+    """``SymBlockDiag(Q MᵀM)``'s blocks ``sym((QM)_i M_iᵀ)``, shape ``(n, d, d)``, from the
+    block rows ``(n, d, r)`` of ``Q M`` and of ``M`` (at rank ``d`` and ``M_i = R_iᵀ``, the
+    certificate's ``Λ``; at higher ranks the staircase's)."""
+    B = QM @ np.swapaxes(M, 1, 2)
+    return 0.5 * (B + np.swapaxes(B, 1, 2))
 
 
 def tolerance(reduced: ReducedProblem) -> float:
@@ -522,7 +520,7 @@ def min_eigenvalue(reduced: ReducedProblem, Lam: Array, eta: float, vector: bool
     psd = False
     lu: spla.SuperLU | None = None
     try:
-        lu = _splu(K)
+        lu = symmetric_lu(K)
         symmetric = np.array_equal(lu.perm_r, lu.perm_c)
         psd = symmetric and bool(np.all(lu.U.diagonal() > 0.0))
     except RuntimeError:  # an exactly singular pivot: S + ηI is not positive definite
@@ -551,9 +549,11 @@ def min_eigenvalue(reduced: ReducedProblem, Lam: Array, eta: float, vector: bool
 
     op = spla.LinearOperator((nd, nd), matvec=shifted, dtype=float)
     try:
-        tops, vectors = spla.eigsh(op, k=1, which="LA", v0=v0, tol=1e-8, ncv=min(nd, 64),
-                                   maxiter=max(1000, nd), return_eigenvectors=True)
-        return Spectrum(float(c - tops[0]), False, True, vectors[:, 0] if vector else None)
+        found = spla.eigsh(op, k=1, which="LA", v0=v0, tol=1e-8, ncv=min(nd, 64),
+                           maxiter=max(1000, nd), return_eigenvectors=vector)
+        tops, vectors = found if vector else (found, None)
+        return Spectrum(float(c - tops[0]), False, True,
+                        vectors[:, 0] if vectors is not None else None)
     except spla.ArpackNoConvergence as err:
         values = err.eigenvalues
         if not len(values):

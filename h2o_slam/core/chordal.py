@@ -15,12 +15,11 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg import lapack
 
 from h2o_slam.core.errors import GraphError
 from h2o_slam.core.geometry import Array
 from h2o_slam.core.graph import EdgeKind, PoseGraph
-from h2o_slam.core.spd import SPDFactor
+from h2o_slam.core.spd import SPDFactor, dense_cholesky_solve
 
 
 def chordal(graph: PoseGraph, weights: Array | None = None) -> tuple[Array, Array]:
@@ -94,13 +93,12 @@ def _dense_solve(rows: np.ndarray, cols: np.ndarray, values: Array, rhs: Array,
                  size: int) -> Array:
     if size == 0:
         return rhs
-    H = np.bincount(rows * (size + 1) + cols, values, minlength=(size + 1) ** 2)
-    H = np.asfortranarray(H.reshape(size + 1, size + 1)[:size, :size], dtype=float)
-    L, info = lapack.dpotrf(H, lower=1)
-    # An unconstrained direction leaves a pivot at rounding level rather than failing.
-    if info != 0 or np.min(np.diagonal(L)) ** 2 <= 1e-12 * np.max(np.diagonal(H)):
-        raise GraphError("the edges do not connect every node to node 0")
-    return lapack.dpotrs(L, rhs, lower=1)[0]
+    sums = np.bincount(rows * (size + 1) + cols, values, minlength=(size + 1) ** 2)
+    H: Array = np.asfortranarray(sums.reshape(size + 1, size + 1)[:size, :size], dtype=float)
+    try:
+        return dense_cholesky_solve(H, rhs, min_pivot=1e-12)
+    except ArithmeticError:
+        raise GraphError("the edges do not connect every node to node 0") from None
 
 
 def _sparse_solve(rows: np.ndarray, cols: np.ndarray, values: Array, rhs: Array,

@@ -169,13 +169,7 @@ class SPDFactor:
         U = sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
         full = (U + sp.triu(U, k=1).T).tocsc()
         try:
-            # Symmetric mode without pivoting keeps the minimum-degree ordering's sparsity:
-            # with SuperLU's default partial pivoting a 15 000-unknown sphere takes 80 s.
-            import scipy.sparse.linalg as spla  # the fallback only: 0.1 s of import
-
-            lu = spla.splu(full, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                           options={"SymmetricMode": True})
-            x = np.asarray(lu.solve(np.asarray(rhs, dtype=float)), dtype=float)
+            x = np.asarray(symmetric_lu(full).solve(np.asarray(rhs, dtype=float)), dtype=float)
         except RuntimeError as err:  # "Factor is exactly singular"
             raise np.linalg.LinAlgError(f"singular matrix ({err})") from None
         if not np.all(np.isfinite(x)):
@@ -289,6 +283,44 @@ class _QDLDL:
         return np.asarray(self._solver.solve(rhs), dtype=float)
 
 
+def symmetric_lu(matrix: Any) -> Any:
+    """SuperLU (scipy's ``SuperLU`` object, for repeated solves) of a symmetric matrix in
+    symmetric mode with diagonal pivots: the minimum-degree ordering of ``Aᵀ + A`` applied to
+    rows and columns alike, so the pivots' signs are the matrix's inertia (with SuperLU's
+    default partial pivoting a 15 000-unknown sphere took 80 s: 10-100× more fill).
+
+    Raises:
+        RuntimeError: an exactly singular pivot.
+    """
+    import scipy.sparse.linalg as spla  # on use only: 0.1 s of import
+
+    return spla.splu(sp.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                     options={"SymmetricMode": True})
+
+
+def dense_cholesky_solve(A: Array, rhs: Array, min_pivot: float = 0.0) -> Array:
+    """``A⁻¹ rhs`` by LAPACK's Cholesky factorization (``potrf``/``potrs``) of the lower
+    triangle of the Fortran-ordered ``A`` (overwritten).
+
+    Raises:
+        ArithmeticError: ``A`` is not positive definite, or a pivot's square is at most
+            ``min_pivot`` × its largest diagonal entry (a direction left undetermined
+            leaves a pivot at rounding level rather than failing).
+    """
+    from scipy.linalg import lapack  # on use: the online path never loads scipy.linalg
+
+    scale = min_pivot * float(np.max(np.diagonal(A), initial=0.0))
+    L, info = lapack.dpotrf(A, lower=1, overwrite_a=1)
+    if info != 0:
+        raise ArithmeticError(f"not positive definite (LAPACK potrf info {info})")
+    if min_pivot and np.min(np.diagonal(L), initial=np.inf) ** 2 <= scale:
+        raise ArithmeticError("not positive definite (a pivot at rounding level)")
+    x, info = lapack.dpotrs(L, np.asarray(rhs, dtype=float), lower=1)
+    if info != 0:
+        raise ValueError(f"LAPACK potrs info {info}")
+    return np.asarray(x).reshape(np.shape(rhs))
+
+
 class _Dense:
     """LAPACK's dense Cholesky factorization (``potrf``/``potrs``) of the matrix the upper
     triangle's pattern is filled into."""
@@ -302,17 +334,9 @@ class _Dense:
         self._flat = indices * n + cols
 
     def solve(self, data: Array, rhs: Array) -> Array:
-        from scipy.linalg import lapack
-
         A = np.zeros(self._n * self._n)
         A[self._flat] = data
-        c, info = lapack.dpotrf(A.reshape(self._n, self._n).T, lower=1, overwrite_a=1)
-        if info != 0:
-            raise ArithmeticError(f"not positive definite (LAPACK potrf info {info})")
-        x, info = lapack.dpotrs(c, np.asarray(rhs, dtype=float), lower=1)
-        if info != 0:
-            raise ValueError(f"LAPACK potrs info {info}")
-        return np.asarray(x).reshape(np.shape(rhs))
+        return dense_cholesky_solve(A.reshape(self._n, self._n).T, rhs)
 
 
 def cholesky_factor(upper: sp.csc_matrix

@@ -44,9 +44,9 @@ import scipy.sparse as sp
 
 from h2o_slam.core.certificate import (
     ReducedProblem,
-    _splu,
     graph_poses,
     min_eigenvalue,
+    sym_blocks,
     sync_poses,
     sync_problem,
     tolerance,
@@ -61,6 +61,7 @@ from h2o_slam.core.modes import (
 )
 from h2o_slam.core.robust import RobustConfig
 from h2o_slam.core.solver import SolverConfig
+from h2o_slam.core.spd import symmetric_lu
 
 #: Highest rank the staircase climbs to before it rounds what it has.
 MAX_RANK = 10
@@ -110,7 +111,7 @@ class RankProblem:
         # Q's sparse part, lifted a little: L(G̃^ρ) is singular along the global rotation.
         # Factored once, solved with at every inner iteration.
         lift = 1e-6 * float(np.max(A.diagonal(), initial=1.0))
-        self._pre = _splu(A + lift * sp.identity(A.shape[0], format="csr"))
+        self._pre = symmetric_lu(A + lift * sp.identity(A.shape[0], format="csr"))
 
     def q(self, M: Array) -> Array:
         """``Q M`` for ``M`` of shape ``(n, d, r)``."""
@@ -124,8 +125,7 @@ class RankProblem:
     @staticmethod
     def lam(M: Array, QM: Array) -> Array:
         """``Λ`` blocks ``sym((QM)_i M_iᵀ)``, shape ``(n, d, d)``."""
-        B = QM @ np.swapaxes(M, 1, 2)
-        return 0.5 * (B + np.swapaxes(B, 1, 2))
+        return sym_blocks(QM, M)
 
     @staticmethod
     def project(M: Array, V: Array) -> Array:
